@@ -1,0 +1,193 @@
+"""Task configs: find, load and validate ``configs/tasks/*.toml``.
+
+A task file has a ``[task]`` table (name, system builder, dt, frames, dtype, deviations) and one table per
+part of the system (``bodies``, ``contact``, ``potential``, ``walls``, ``init`` and system-specific ones).
+Every value is checked at this boundary; an invalid one raises :class:`ConfigError` naming the field, e.g.
+``ConfigError: contact.cor = 1.3 is not in [0, 1]``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomllib
+
+from diffcontact.errors import ConfigError
+
+_ENV_DIR = "DIFFCONTACT_TASKS"
+
+
+def tasks_dir() -> Path:
+    """Directory of the task files: ``$DIFFCONTACT_TASKS`` or ``<repo>/configs/tasks``."""
+    env = os.environ.get(_ENV_DIR)
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2] / "configs" / "tasks"
+
+
+def available_tasks() -> list[str]:
+    """Names of the tasks found in :func:`tasks_dir` (file stems), sorted."""
+    folder = tasks_dir()
+    return sorted(p.stem for p in folder.glob("*.toml")) if folder.is_dir() else []
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """A validated task: ``raw`` is the parsed TOML (kept verbatim so outputs can record it)."""
+
+    name: str
+    system: str
+    dt: float
+    frames: int
+    dtype: str
+    raw: dict[str, Any] = field(repr=False)
+    source: str = ""
+
+    def section(self, key: str) -> Section:
+        """The table ``key`` (an empty one if absent) wrapped for validated access."""
+        value = self.raw.get(key, {})
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key} must be a table, got {value!r}")
+        return Section(key, value)
+
+    @property
+    def toml_text(self) -> str:
+        """The task file's text (for recording alongside outputs)."""
+        return self.source
+
+
+class Section:
+    """Validated getters for one config table; errors name the dotted field."""
+
+    def __init__(self, prefix: str, data: dict[str, Any]):
+        self.prefix = prefix
+        self.data = data
+
+    def _name(self, key: str) -> str:
+        return f"{self.prefix}.{key}"
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def get(self, key: str, default: Any = None) -> Any:
+        return self.data.get(key, default)
+
+    def number(self, key: str, default: float | None = None, *, lo: float | None = None,
+               hi: float | None = None, lo_open: bool = False) -> float:
+        """A finite real in [lo, hi] (or (lo, hi] with ``lo_open``)."""
+        if key not in self.data:
+            if default is None:
+                raise ConfigError(f"{self._name(key)} is missing")
+            return float(default)
+        return _check_real(self._name(key), self.data[key], lo, hi, lo_open)
+
+    def integer(self, key: str, default: int | None = None, *, lo: int | None = None) -> int:
+        if key not in self.data:
+            if default is None:
+                raise ConfigError(f"{self._name(key)} is missing")
+            return int(default)
+        value = self.data[key]
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{self._name(key)} = {value!r} is not an integer")
+        if lo is not None and value < lo:
+            raise ConfigError(f"{self._name(key)} = {value} is smaller than {lo}")
+        return value
+
+    def numbers(self, key: str, *, length: int | tuple[int, ...] | None = None, lo: float | None = None,
+                hi: float | None = None, lo_open: bool = False, default: list[float] | None = None
+                ) -> list[float]:
+        """A list of finite reals, each in range, of an allowed length (an int or a tuple of ints)."""
+        if key not in self.data:
+            if default is None:
+                raise ConfigError(f"{self._name(key)} is missing")
+            values = list(default)
+        else:
+            values = self.data[key]
+        name = self._name(key)
+        if isinstance(values, (int, float)) and not isinstance(values, bool):
+            values = [values]
+        if not isinstance(values, list):
+            raise ConfigError(f"{name} = {values!r} is not a list of numbers")
+        allowed = (length,) if isinstance(length, int) else length
+        if allowed is not None and len(values) not in allowed:
+            want = " or ".join(str(n) for n in allowed)
+            raise ConfigError(f"{name} has {len(values)} values, expected {want}")
+        return [_check_real(f"{name}[{i}]", v, lo, hi, lo_open) for i, v in enumerate(values)]
+
+    def matrix(self, key: str, *, cols: int, default: list[list[float]] | None = None) -> list[list[float]]:
+        """A list of rows of ``cols`` finite reals."""
+        rows = self.data.get(key, default)
+        name = self._name(key)
+        if rows is None:
+            raise ConfigError(f"{name} is missing")
+        if not isinstance(rows, list):
+            raise ConfigError(f"{name} = {rows!r} is not a list of rows")
+        out = []
+        for i, row in enumerate(rows):
+            if not isinstance(row, list) or len(row) != cols:
+                raise ConfigError(f"{name}[{i}] = {row!r} is not a row of {cols} numbers")
+            out.append([_check_real(f"{name}[{i}][{j}]", v, None, None, False) for j, v in enumerate(row)])
+        return out
+
+    def choice(self, key: str, options: tuple[str, ...], default: str | None = None) -> str:
+        value = self.data.get(key, default)
+        if value not in options:
+            raise ConfigError(f"{self._name(key)} = {value!r} is not one of {list(options)}")
+        return value
+
+
+def _check_real(name: str, value: Any, lo: float | None, hi: float | None, lo_open: bool) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{name} = {value!r} is not a number")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ConfigError(f"{name} = {value} is not finite")
+    if lo is not None and hi is not None and (value < lo or value > hi or (lo_open and value == lo)):
+        left = "(" if lo_open else "["
+        raise ConfigError(f"{name} = {value:g} is not in {left}{lo:g}, {hi:g}]")
+    if lo is not None and (value < lo or (lo_open and value == lo)):
+        word = "positive" if lo == 0 and lo_open else f">= {lo:g}"
+        raise ConfigError(f"{name} = {value:g} is not {word}")
+    if hi is not None and value > hi:
+        raise ConfigError(f"{name} = {value:g} is not <= {hi:g}")
+    return value
+
+
+def load_task(name_or_path: str | Path, overrides: dict[str, dict[str, Any]] | None = None) -> TaskConfig:
+    """Load a task by name (``BP5-e``) or path (``configs/tasks/BP5-e.toml``) and validate ``[task]``.
+
+    ``overrides`` maps table -> {key: value} and is applied before validation (used by tests and sweeps).
+    System-specific tables are validated when the System is built (:func:`diffcontact.systems.build_system`).
+    """
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = tasks_dir() / f"{name_or_path}.toml"
+    if not path.is_file():
+        raise ConfigError(f"unknown task {str(name_or_path)!r}; available tasks: {', '.join(available_tasks())}")
+    text = path.read_text()
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: invalid TOML: {err}") from err
+    for table, values in (overrides or {}).items():
+        raw.setdefault(table, {}).update(values)
+    return task_from_dict(raw, source=text)
+
+
+def task_from_dict(raw: dict[str, Any], source: str = "") -> TaskConfig:
+    """Validate the ``[task]`` table of an already parsed config."""
+    task = Section("task", raw.get("task", {}))
+    name = task.get("name")
+    if not isinstance(name, str) or not name:
+        raise ConfigError("task.name is missing")
+    system = task.get("system")
+    if not isinstance(system, str):
+        raise ConfigError("task.system is missing")
+    dt = task.number("dt", lo=0.0, lo_open=True)
+    frames = task.integer("frames", lo=2)
+    dtype = task.choice("dtype", ("float64", "float32"), default="float64")
+    return TaskConfig(name=name, system=system, dt=dt, frames=frames, dtype=dtype, raw=raw, source=source)

@@ -1,0 +1,97 @@
+"""Batched contact detection: the active candidates of every batch element and their Jacobian rows.
+
+All candidate kinds of a system share one contact-space dimension dc (the largest of its kinds); rows of a
+kind with fewer rows are zero-padded and the contact is made frictionless, so one solver call has one d.
+Only batch elements with at least one active contact are kept, and their contacts are compacted into the
+first K_c slots (K_c = the largest active count in the batch) with an ``active`` mask.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from diffcontact.contact.kinds import ContactKind
+
+
+@dataclass(frozen=True)
+class ContactSet:
+    """Active contacts of the colliding batch elements.
+
+    index: (B',) batch indices; active: (B', K_c) bool; gap: (B', K_c) (0 where inactive);
+    J: (B', K_c dc, D) contact Jacobian (rows of inactive contacts are 0); slot: (B', K_c) index into μ, e;
+    frictionless: (B', K_c) bool (limit-like contacts padded to dc rows).
+    """
+
+    index: torch.Tensor
+    active: torch.Tensor
+    gap: torch.Tensor
+    J: torch.Tensor
+    slot: torch.Tensor
+    frictionless: torch.Tensor
+    dc: int
+
+
+class Detector:
+    """All contact candidates of a system, concatenated (K_max of them), with static index tensors."""
+
+    def __init__(self, kinds: tuple[ContactKind, ...], n_points: int, anchors: torch.Tensor, d: int):
+        self.kinds = tuple(k for k in kinds if k.count > 0)
+        self.P, self.d, self.anchors = n_points, d, anchors
+        self.dc = max((k.dc for k in self.kinds), default=d)
+        self.count = sum(k.count for k in self.kinds)
+        if self.kinds:
+            self.slot = torch.cat([k.slot for k in self.kinds])
+            self.frictionless = torch.cat([torch.full((k.count,), k.dc < self.dc) for k in self.kinds])
+        else:
+            self.slot = torch.zeros(0, dtype=torch.long)
+            self.frictionless = torch.zeros(0, dtype=torch.bool)
+
+    def extend(self, x: torch.Tensor) -> torch.Tensor:
+        """Positions with the fixed anchors appended: (B, P, d) -> (B, P + n_anchors, d)."""
+        return torch.cat([x, self.anchors.to(x).expand(x.shape[0], -1, -1)], dim=1)
+
+    def gaps(self, x: torch.Tensor) -> torch.Tensor:
+        """Signed gaps of all K_max candidates (B, K_max); negative means in contact."""
+        ext = self.extend(x)
+        if not self.kinds:
+            return x.new_zeros(x.shape[0], 0)
+        return torch.cat([k.evaluate(ext, rows=False)[0] for k in self.kinds], dim=1)
+
+    def jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        """Rows of every candidate (B, K_max, dc, D), in the (P, d) layout, anchors dropped."""
+        ext = self.extend(x)
+        B, n_ext = x.shape[0], ext.shape[1]
+        blocks = []
+        for kind in self.kinds:  # a handful of declared kinds, not contacts
+            _, vals = kind.evaluate(ext, rows=True)  # (B, K, m, dck, d)
+            K, m = kind.cols.shape
+            out = vals.new_zeros(K, n_ext, B, self.dc, self.d)
+            rows = torch.arange(K)[:, None].expand(K, m)
+            padded = torch.nn.functional.pad(vals, (0, 0, 0, self.dc - kind.dc))
+            out = out.index_put((rows, kind.cols), padded.permute(1, 2, 0, 3, 4), accumulate=True)
+            blocks.append(out[:, : self.P].permute(2, 0, 3, 1, 4).reshape(B, K, self.dc, self.P * self.d))
+        return torch.cat(blocks, dim=1)
+
+    def detect(self, x: torch.Tensor) -> ContactSet | None:
+        """The active contacts at positions x (B, P, d), or None if no batch element is in contact."""
+        if not self.kinds:
+            return None
+        with torch.no_grad():
+            gap_all = self.gaps(x)
+            hit = gap_all < 0
+            index = torch.nonzero(hit.any(dim=1)).flatten()
+            if index.numel() == 0:
+                return None
+            hit = hit[index]
+            k_c = int(hit.sum(1).max())
+            order = torch.argsort((~hit).to(torch.int8), dim=1, stable=True)[:, :k_c]  # active first
+            active = torch.gather(hit, 1, order)
+            gap = torch.gather(gap_all[index], 1, order) * active
+        xs = x[index]
+        J = self.jacobian(xs)
+        J = torch.gather(J, 1, order[:, :, None, None].expand(-1, -1, self.dc, J.shape[-1]))
+        J = (J * active[:, :, None, None]).reshape(len(index), k_c * self.dc, -1)
+        return ContactSet(index=index, active=active, gap=gap, J=J, slot=self.slot[order],
+                          frictionless=self.frictionless[order], dc=self.dc)

@@ -1,0 +1,94 @@
+"""The contact model (paper Sec. 3, Eqs. 5–17): compression, then restitution, then the velocity jump.
+
+    compression   f_c = argmin ½fᵀAf + fᵀ(J_C v⁻)                     s.t. f in the friction cones
+    restitution   f_r = argmin ½fᵀAf + fᵀ(J_C v_c − v*_C)             s.t. cones, f_n >= e f_c,n
+    apply         v⁺ = v⁻ + M̂⁻¹J_Cᵀ(f_c + f_r)
+
+CM uses A; CMr uses A + r I (r = 0.01) inside both problems while velocities still use M̂⁻¹. The target
+v*_C (paper Suppl. F) is a fraction of depth/dt on the normals, projected to respect the equality
+constraints; it is computed without gradient.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from diffcontact.contact.detect import ContactSet
+from diffcontact.contact.effective_mass import constrained_inverse_inertia_times, contact_inverse_inertia
+from diffcontact.dynamics.constraints import Constraints
+from diffcontact.dynamics.inertia import body_blocks
+from diffcontact.state import Params
+
+
+def _default_solver():
+    from diffcontact.solver import solve_cone_qp
+
+    return solve_cone_qp
+
+
+@dataclass(frozen=True)
+class ContactModel:
+    """CM (``reg = 0``) or CMr (``reg > 0``), with penetration compensation ``compensation`` × depth/dt.
+
+    ``solver`` has the signature of :func:`diffcontact.solver.solve_cone_qp` (default: that function);
+    ``on_failure`` is passed to it ("raise" by default: no silent zero impulses).
+    """
+
+    reg: float = 0.0
+    compensation: float = 0.125
+    solver: Callable | None = None
+    on_failure: str = "raise"
+
+    def impulses(self, constraints: Constraints, params: Params, x: torch.Tensor, v: torch.Tensor,
+                 contacts: ContactSet, dt: float) -> torch.Tensor:
+        """Velocity jumps Δv (B', P, d) of the colliding elements ``contacts.index`` (x, v: (B, P, d))."""
+        solve = self.solver or _default_solver()
+        idx, dc = contacts.index, contacts.dc
+        xs, vs = x[idx], v[idx]
+        Bp, P, d = xs.shape
+        _, Minv = body_blocks(params.inertia)
+        Jc = contacts.J.to(x)
+        MhJt = constrained_inverse_inertia_times(Minv, constraints, xs, Jc)  # (B', D, C)
+        A = contact_inverse_inertia(Jc, MhJt)
+        A_qp = A + self.reg * torch.eye(A.shape[-1], dtype=A.dtype) if self.reg > 0 else A
+        mu = torch.where(contacts.frictionless, torch.zeros((), dtype=x.dtype), params.mu.to(x)[contacts.slot])
+        e = params.e.to(x)[contacts.slot]
+        vC = (Jc @ vs.reshape(Bp, -1, 1))[..., 0]
+        f_c = solve(A_qp, vC, mu, None, contacts.active, on_failure=self.on_failure)
+        v_target = self.target_velocity(constraints, xs, contacts, dt)
+        vC_c = vC + (A @ f_c[..., None])[..., 0]
+        lower = (e * f_c[:, ::dc]).clamp_min(0.0)  # solver tolerance can leave f_c,n ~ -1e-12
+        f_r = solve(A_qp, vC_c - v_target, mu, lower, contacts.active, on_failure=self.on_failure)
+        return (MhJt @ (f_c + f_r)[..., None]).reshape(Bp, P, d)
+
+    @torch.no_grad()
+    def target_velocity(self, constraints: Constraints, xs: torch.Tensor, contacts: ContactSet,
+                        dt: float) -> torch.Tensor:
+        """v*_C (B', C) of paper Eq. S.17: v_d = −compensation·gap/dt on normals (0 on tangents), lifted by
+        the pseudo-inverse of J_C (min-norm least squares, Eq. S.18), projected onto J_E y = 0 and mapped
+        back by J_C."""
+        Bp, k_c = contacts.active.shape
+        vd = torch.zeros(Bp, k_c, contacts.dc, dtype=xs.dtype)
+        vd[..., 0] = -self.compensation * contacts.gap.to(xs) / dt
+        vd = vd.reshape(Bp, -1, 1)
+        Jc = contacts.J.to(xs).detach()
+        y = torch.linalg.lstsq(Jc, vd, driver="gelsd").solution  # J_C⁺ v_d, (B', D, 1)
+        if constraints.count:
+            JE = constraints.jac(xs)
+            L = torch.linalg.cholesky(JE @ JE.mT)
+            y = y - JE.mT @ torch.cholesky_solve(JE @ y, L)
+        return (Jc @ y)[..., 0]
+
+    def __call__(self, constraints: Constraints, detector, params: Params, x: torch.Tensor,
+                 v: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Apply the contact model to a batch: returns (v⁺ (B, P, d), in_contact (B,) bool)."""
+        contacts = detector.detect(x)
+        flag = torch.zeros(x.shape[0], dtype=torch.bool)
+        if contacts is None:
+            return v, flag
+        dv = self.impulses(constraints, params, x, v, contacts, dt)
+        flag[contacts.index] = True
+        return v.index_put((contacts.index,), v[contacts.index] + dv), flag

@@ -1,0 +1,1 @@
+"""Continuous dynamics in Cartesian coordinates: inertia, holonomic constraints, potentials, vector fields."""

@@ -1,0 +1,56 @@
+"""Constrained Lagrangian dynamics in Cartesian coordinates (x, v) (paper Suppl. B; spec D.1).
+
+v̇ = M⁻¹f − M⁻¹J_Eᵀλ with f = −∇V(x) and λ = (J_E M⁻¹ J_Eᵀ)⁻¹ (J_E M⁻¹ f + J̇_E v), so that the
+accelerations keep J_E v = 0. ∇V comes from autograd, so a learned potential runs through the same code.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from diffcontact.dynamics.constraints import Constraints
+from diffcontact.dynamics.inertia import apply_blocks, body_blocks
+from diffcontact.state import Params, Potential
+
+
+def potential_force(potential: Potential, x: torch.Tensor) -> torch.Tensor:
+    """f = −∇V(x) by autograd: x (B, P, d) -> (B, P, d) in N.
+
+    The graph of ∇V is kept when gradients are enabled outside (training, gradient tests), so the force is
+    differentiable w.r.t. x and the potential's parameters; under ``torch.no_grad`` it is not.
+    """
+    outer = torch.is_grad_enabled()
+    with torch.enable_grad():
+        xg = x if x.requires_grad else x.detach().requires_grad_(True)
+        V = potential(xg)
+        if not V.requires_grad:  # a constant potential
+            return torch.zeros_like(x)
+        (grad,) = torch.autograd.grad(V.sum(), xg, create_graph=outer)
+    return -grad
+
+
+def constrained_acceleration(constraints: Constraints, Minv: torch.Tensor, x: torch.Tensor,
+                             v: torch.Tensor, force: torch.Tensor) -> torch.Tensor:
+    """a = M⁻¹f − M⁻¹J_Eᵀλ (B, P, d) for force (B, P, d) and M⁻¹ blocks (n, q, q); Cholesky solve in λ."""
+    a0 = apply_blocks(Minv, force)
+    if constraints.count == 0:
+        return a0
+    B, P, d = x.shape
+    J = constraints.jac(x)  # (B, E, D)
+    Jdot = constraints.jac_dot(x, v)
+    MinvJt = apply_blocks(Minv, J.mT.reshape(B, P, d, -1)).reshape(B, P * d, -1)
+    G = J @ MinvJt
+    rhs = (J @ a0.reshape(B, -1, 1) + Jdot @ v.reshape(B, -1, 1))
+    L, info = torch.linalg.cholesky_ex(G)
+    if bool((info != 0).any()):
+        raise FloatingPointError("constrained dynamics: J_E M⁻¹ J_Eᵀ is not positive definite "
+                                 f"in {int((info != 0).sum())} batch elements (degenerate constraints)")
+    lam = torch.cholesky_solve(rhs, L)
+    return a0 - (MinvJt @ lam).reshape(B, P, d)
+
+
+def lagrangian_field(constraints: Constraints, params: Params, x: torch.Tensor,
+                     v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The vector field (ẋ, v̇) = (v, a(x, v)) of the constrained Lagrangian system, each (B, P, d)."""
+    _, Minv = body_blocks(params.inertia)
+    return v, constrained_acceleration(constraints, Minv, x, v, potential_force(params.potential, x))

@@ -1,0 +1,76 @@
+"""The Simulator: one physics path (Algorithm 1) for ground truth and learned models alike.
+
+Simulator(system, dynamics, contact_model).step / .rollout take a State and Params; Params may be true
+values or the output of learnable modules.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+
+import torch
+
+from diffcontact.contact.impulse import ContactModel
+from diffcontact.dynamics.hamiltonian import hamiltonian_field, momentum, velocity
+from diffcontact.dynamics.lagrangian import lagrangian_field
+from diffcontact.errors import ConfigError
+from diffcontact.integrate import rk4_step
+from diffcontact.state import Params, State
+from diffcontact.systems.base import System
+
+DYNAMICS = ("lagrangian", "hamiltonian")
+
+
+@dataclass(eq=False)
+class Simulator:
+    """Constrained Lagrangian (x, v) or Hamiltonian (x, p) dynamics + a contact model, for one System."""
+
+    system: System
+    dynamics: str = "lagrangian"
+    contact_model: ContactModel = field(default_factory=ContactModel)
+
+    def __post_init__(self):
+        if self.dynamics not in DYNAMICS:
+            raise ConfigError(f"dynamics = {self.dynamics!r} is not one of {list(DYNAMICS)}")
+
+    def flow(self, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The smooth part: one RK4 step (no contacts) from (x, v), returning (x, v) at t + dt."""
+        cons = self.system.constraints
+        if self.dynamics == "lagrangian":
+            return rk4_step(partial(lagrangian_field, cons, params), x, v, dt)
+        x1, p1 = rk4_step(partial(hamiltonian_field, cons, params), x, momentum(params, v), dt)
+        return x1, velocity(params, p1)
+
+    def step(self, state: State, params: Params, dt: float) -> tuple[State, torch.Tensor]:
+        """Algorithm 1, one step: RK4 then the contact model. Returns (state at t + dt, in_contact (B,))."""
+        x1, v1 = self.flow(params, state.x, state.v, dt)
+        v1, hit = self.contact_model(self.system.constraints, self.system.detector, params, x1, v1, dt)
+        return State(x1, v1), hit
+
+    def rollout(self, state: State, params: Params, dt: float, frames: int
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``frames`` frames starting at ``state`` (frame 0): x, v (B, T, P, d) and in_contact (B, T).
+
+        Raises FloatingPointError naming the frame and batch element if the state becomes non-finite.
+        """
+        xs, vs = [state.x], [state.v]
+        flags = [torch.zeros(state.batch, dtype=torch.bool)]
+        for t in range(1, frames):
+            state, hit = self.step(state, params, dt)
+            state.check_finite(where=f"{self.system.name} frame {t}")
+            xs.append(state.x)
+            vs.append(state.v)
+            flags.append(hit)
+        return torch.stack(xs, 1), torch.stack(vs, 1), torch.stack(flags, 1)
+
+
+def simulator_for(task, dynamics: str = "lagrangian", reg: float = 0.0, solver=None,
+                  on_failure: str = "raise") -> Simulator:
+    """The Simulator of a Task: its contact compensation from ``contact.compensation`` (default 1/8)."""
+    comp = task.config.section("contact").number("compensation", 0.125, lo=0.0, hi=1.0)
+    if reg < 0:
+        raise ConfigError(f"reg = {reg:g} is not >= 0")
+    model = ContactModel(reg=reg, compensation=comp, solver=solver, on_failure=on_failure)
+    return Simulator(task.system, dynamics, model)

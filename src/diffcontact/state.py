@@ -1,0 +1,67 @@
+"""The batched State and the Params of a system, kept apart from its static structure (the System).
+
+Shapes: B = batch (trajectories), P = points (bodies × points per body), d = spatial dimension.
+Params may hold plain tensors (ground truth) or tensors produced by ``nn.Module``s (learned models): the
+physics code only reads them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import torch
+
+Potential = Callable[[torch.Tensor], torch.Tensor]
+"""A potential energy V: positions (B, P, d) -> (B,), in joules (any consistent unit)."""
+
+
+@dataclass(frozen=True)
+class State:
+    """Positions ``x`` (B, P, d) and velocities ``v`` (B, P, d) of every point."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+
+    @property
+    def batch(self) -> int:
+        return self.x.shape[0]
+
+    def check_finite(self, where: str = "state") -> State:
+        """Raise FloatingPointError naming the first batch element with a NaN/Inf entry."""
+        bad = ~(torch.isfinite(self.x).flatten(1).all(1) & torch.isfinite(self.v).flatten(1).all(1))
+        if bool(bad.any()):
+            idx = int(torch.nonzero(bad)[0])
+            raise FloatingPointError(f"{where}: non-finite position or velocity in batch element {idx} "
+                                     f"({int(bad.sum())} of {bad.numel()} elements affected)")
+        return self
+
+
+@dataclass(frozen=True)
+class Inertia:
+    """Masses (n_bodies,) in kg and per-axis second moments per unit mass (n_bodies, k) in m².
+
+    k = 0 for point masses, d for extended bodies (2D body: 3 points, 3D body: 4 points). For a disk of
+    radius r the moments are r²/4 per axis.
+    """
+
+    masses: torch.Tensor
+    moments: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Params:
+    """The physical properties a model may learn.
+
+    inertia: :class:`Inertia`; potential: V(x) -> (B,); mu: (n_slots,) friction coefficients >= 0;
+    e: (n_slots,) Poisson coefficients of restitution in [0, 1].
+    """
+
+    inertia: Inertia
+    potential: Potential
+    mu: torch.Tensor
+    e: torch.Tensor
+
+    def replace(self, **changes) -> Params:
+        """A copy with some fields replaced (e.g. ``params.replace(mu=new_mu)``)."""
+        return replace(self, **changes)

@@ -1,0 +1,87 @@
+"""System (static structure and geometry) and Task (a system with its true Params and sampler)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from diffcontact.config import TaskConfig
+from diffcontact.contact.detect import Detector
+from diffcontact.dynamics.constraints import Constraints
+from diffcontact.dynamics.inertia import kinetic_energy
+from diffcontact.state import Params, State
+
+
+@dataclass(frozen=True)
+class Drawing:
+    """What a renderer needs: body radii (n_bodies,), segments (S, 2) of extended point indices to draw as
+    links, planes as (normal (W, d), offset (W,)), the body shape ("ball", "disk2d", "disk3d") and a view
+    box ((lo, hi) per axis)."""
+
+    radii: torch.Tensor
+    segments: torch.Tensor
+    plane_normal: torch.Tensor
+    plane_offset: torch.Tensor
+    shape: str
+    view: tuple[tuple[float, float], ...]
+
+
+@dataclass(eq=False)
+class System:
+    """Static structure of a rigid-body system in Cartesian coordinates.
+
+    d: spatial dimension; n_bodies bodies of ``points_per_body`` points each (1 for point masses, d + 1 for
+    extended bodies), P = n_bodies · points_per_body points, D = P d coordinates; ``anchors`` (n_anchors, d)
+    are fixed world points addressed by extended point indices P, P + 1, ...; ``constraints`` are the
+    holonomic constraints; ``detector`` holds every contact candidate; ``n_slots`` is the length of μ and e.
+    """
+
+    name: str
+    d: int
+    n_bodies: int
+    points_per_body: int
+    anchors: torch.Tensor
+    constraints: Constraints
+    detector: Detector
+    n_slots: int
+    drawing: Drawing
+
+    @property
+    def n_points(self) -> int:
+        return self.n_bodies * self.points_per_body
+
+    def energy(self, params: Params, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Total energy ½vᵀMv + V(x): x, v (B, P, d) -> (B,) in J."""
+        return kinetic_energy(params.inertia, v) + params.potential(x)
+
+
+Sampler = Callable[[int, torch.Generator, torch.dtype], State]
+
+
+@dataclass(eq=False)
+class Task:
+    """A benchmark task: its config, System, true Params and initial-condition sampler."""
+
+    config: TaskConfig
+    system: System
+    params: Params
+    sampler: Sampler = field(repr=False)
+
+    @property
+    def dt(self) -> float:
+        return self.config.dt
+
+    @property
+    def frames(self) -> int:
+        return self.config.frames
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return getattr(torch, self.config.dtype)
+
+    def sample(self, n: int, seed: int) -> State:
+        """n initial states (not in contact), reproducible from ``seed`` (a torch.Generator on CPU)."""
+        gen = torch.Generator().manual_seed(seed)
+        return self.sampler(n, gen, self.dtype)
