@@ -1,0 +1,232 @@
+"""The contact cone QP: input checks, scaling, and the public entry point ``solve_cone_qp``.
+
+Problem (paper Eqs. 15 and 17), independently for every batch element:
+
+    minimise ½ fᵀAf + qᵀf   subject to   f_n,i ≥ lower_i,  ‖f_t,i‖ ≤ μ_i f_n,i   for every active contact i.
+
+The solver works on z with f = γ·S·D·z: D = diag(1, μ_i, …) per contact turns every friction cone into the
+unit second-order cone (so μ = 0 needs no special case), S is a per-contact Jacobi scaling and γ a global scale
+that bring the data to order one.  S and γ are constants of the scaling (the solution map is equivariant
+under them), so they carry no gradient; D carries the gradient with respect to μ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Literal
+
+import torch
+
+from diffcontact.errors import ContactSolverError
+from diffcontact.solver import ipm
+from diffcontact.solver.implicit import ImplicitConeQP
+
+
+class Status(IntEnum):
+    """Per-element solver status."""
+
+    CONVERGED = ipm.CONVERGED  #: residuals below ``tol``
+    INACCURATE = ipm.INACCURATE  #: iteration limit, residuals below ``acceptable_tol`` (usable, not an error)
+    MAX_ITER = ipm.MAX_ITER  #: iteration limit with large residuals (failure)
+    NUMERICAL = ipm.NUMERICAL  #: non-finite values or a failed factorisation (failure)
+    UNBOUNDED = ipm.UNBOUNDED  #: the objective is unbounded below on the cones (failure)
+
+
+@dataclass
+class SolverInfo:
+    """What the solver reports besides the solution.
+
+    status: (B,) int64 of :class:`Status` codes; iterations: (B,); residual: (B,) final scaled KKT residual.
+    """
+
+    status: torch.Tensor
+    iterations: torch.Tensor
+    residual: torch.Tensor
+
+    @property
+    def failed(self) -> torch.Tensor:
+        """(B,) bool: elements whose solution is not usable (returned as zeros)."""
+        return self.status >= Status.MAX_ITER
+
+    @property
+    def n_failed(self) -> int:
+        """Number of failed elements."""
+        return int(self.failed.sum())
+
+
+def check_problem(A, q, mu, lower=None, active=None):
+    """Validate shapes and values; returns (A, q, mu, lower, active, d) with defaults filled in.
+
+    A: (B, K·d, K·d); q: (B, K·d); mu: (B, K) ≥ 0; lower: (B, K) ≥ 0 or None; active: (B, K) bool or None.
+    """
+    for name, t in (("A", A), ("q", q), ("mu", mu)):
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if A.dim() != 3 or A.shape[-1] != A.shape[-2]:
+        raise ValueError(f"A must have shape (B, K*d, K*d), got {tuple(A.shape)}")
+    B, n = A.shape[0], A.shape[-1]
+    if mu.dim() != 2 or mu.shape[0] != B:
+        raise ValueError(f"mu must have shape (B, K) with B = {B}, got {tuple(mu.shape)}")
+    K = mu.shape[-1]
+    if K == 0 or n % K != 0 or n // K not in (1, 2, 3):
+        raise ValueError(f"A has {n} rows for K = {K} contacts: the contact dimension d = n/K must be 1, 2 or 3")
+    d = n // K
+    if tuple(q.shape) != (B, n):
+        raise ValueError(f"q must have shape (B, K*d) = {(B, n)}, got {tuple(q.shape)}")
+    if lower is None:
+        lower = torch.zeros_like(mu)
+    elif tuple(lower.shape) != (B, K):
+        raise ValueError(f"lower must have shape (B, K) = {(B, K)}, got {tuple(lower.shape)}")
+    if active is None:
+        active = torch.ones(B, K, dtype=torch.bool, device=mu.device)
+    elif tuple(active.shape) != (B, K) or active.dtype != torch.bool:
+        raise ValueError(f"active must be a bool tensor of shape (B, K) = {(B, K)}")
+    for name, t in (("A", A), ("q", q), ("mu", mu), ("lower", lower)):
+        bad = ~torch.isfinite(t.detach()).reshape(B, -1).all(-1)
+        if bad.any():
+            raise ValueError(f"{name} has non-finite values in batch elements {_first(bad)}")
+    if (mu.detach() < 0).any():
+        raise ValueError(f"mu must be >= 0; negative in batch elements {_first((mu.detach() < 0).any(-1))}")
+    if (lower.detach() < 0).any():
+        raise ValueError(f"lower must be >= 0; negative in batch elements {_first((lower.detach() < 0).any(-1))}")
+    return A, q, mu, lower, active, d
+
+
+def _first(mask: torch.Tensor, k: int = 10) -> str:
+    idx = mask.nonzero().flatten().tolist()
+    return str(idx[:k]) + (f" (and {len(idx) - k} more)" if len(idx) > k else "")
+
+
+def solve_cone_qp(
+    A: torch.Tensor,
+    q: torch.Tensor,
+    mu: torch.Tensor,
+    lower: torch.Tensor | None = None,
+    active: torch.Tensor | None = None,
+    *,
+    tol: float = 1e-10,
+    acceptable_tol: float = 1e-7,
+    max_iter: int = 60,
+    on_failure: Literal["raise", "count"] = "raise",
+    return_info: bool = False,
+):
+    """Solve a batch of contact cone QPs; differentiable by implicit differentiation.
+
+    Args:
+        A: (B, K·d, K·d) symmetric PSD inverse inertia in contact space (may be singular).
+        q: (B, K·d) linear term (contact velocity, minus the target velocity in the restitution phase).
+        mu: (B, K) friction coefficients ≥ 0 (unused for d = 1).
+        lower: (B, K) lower bounds ≥ 0 on the normal impulses (restitution phase: e·f_n of compression).
+        active: (B, K) bool; inactive contacts get f = 0 and do not affect the others.
+        tol: target of the scaled KKT residual; acceptable_tol: residual still usable at the iteration limit.
+        on_failure: "raise" raises :class:`ContactSolverError` naming the failing elements; "count" returns
+            zeros for them and reports them in the info.
+        return_info: also return a :class:`SolverInfo`.
+
+    Returns:
+        f: (B, K·d) in the dtype of A (solved in float64), or (f, info).  Contact i's entries are
+        f[..., i·d:(i+1)·d] = (f_n, f_t…).  Gradients flow to A, q, mu and lower.
+    """
+    if on_failure not in ("raise", "count"):
+        raise ValueError(f"on_failure must be 'raise' or 'count', got {on_failure!r}")
+    A, q, mu, lower, active, d = check_problem(A, q, mu, lower, active)
+    out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
+    B, n = q.shape
+    K = n // d
+    A64 = A.to(torch.float64)
+    A64 = 0.5 * (A64 + A64.mT)
+    q64, mu64, low64 = q.to(torch.float64), mu.to(torch.float64), lower.to(torch.float64)
+    onf = active.to(torch.float64)
+    on_rows = onf.repeat_interleave(d, dim=-1)  # (B, n)
+
+    # ---- substitution f = γ S D z ----
+    if d > 1:
+        D = torch.cat([torch.ones_like(mu64).unsqueeze(-1), mu64.unsqueeze(-1).expand(B, K, d - 1)], -1)
+        D = D.reshape(B, n)
+    else:
+        D = torch.ones_like(q64)
+    with torch.no_grad():
+        a_nn = A64.diagonal(dim1=-2, dim2=-1).view(B, K, d)[..., 0] * onf
+        a_max = a_nn.amax(-1, keepdim=True)
+        a_ref = torch.where(a_max > 0, a_max, torch.ones_like(a_max))
+        sigma = torch.where(a_nn > 1e-12 * a_ref, a_nn, a_ref).rsqrt()  # (B, K)
+        S = sigma.repeat_interleave(d, dim=-1)
+        # γ: the size of the solution, estimated contact by contact as max(lower, −q_n/A_nn) in scaled units
+        # (the whole data scale when every contact separates and the solution is zero)
+        sq = (S * q64.detach()).view(B, K, d)[..., 0]
+        estimate = (torch.maximum(low64.detach() / sigma, -sq) * onf).amax(-1)
+        c_abs = (S * D.detach() * q64.detach() * on_rows).abs().amax(-1)
+        gamma = torch.where(estimate > 0, estimate, c_abs)
+        gamma = torch.where(gamma > 0, gamma, torch.ones_like(gamma))
+    T = S * D * on_rows  # (B, n); zero on inactive rows
+    P = T.unsqueeze(-1) * A64 * T.unsqueeze(-2)
+    P = P + torch.diag_embed(1.0 - on_rows)  # identity on inactive variables
+
+    def data(gamma):
+        return T * q64 / gamma[:, None], low64 / (sigma * gamma[:, None]) * onf
+
+    def run(gamma, sel=None):
+        c, l_hat = data(gamma)
+        args = (P, c, l_hat, active)
+        if sel is not None:
+            args = tuple(a[sel] for a in args)
+        res = ipm.solve_ipm(
+            *(a.detach() for a in args[:3]), args[3], d, tol=tol, acceptable_tol=acceptable_tol, max_iter=max_iter
+        )
+        return c, l_hat, res
+
+    c, l_hat, result = run(gamma)
+    # A badly estimated solution size (nearly singular A) can stall the method: solve those elements once more
+    # with the scale of the stalled iterate.
+    retry = (result.status == Status.MAX_ITER) & torch.isfinite(result.z).all(-1)
+    if retry.any():
+        gamma2 = gamma.clone()
+        gamma2[retry] = gamma[retry] * result.z[retry].abs().amax(-1).clamp_min(1e-6)
+        _, _, res2 = run(gamma2, retry)
+        better = res2.status < result.status[retry]
+        idx = retry.nonzero().flatten()[better]
+        if len(idx):
+            gamma = torch.where(torch.isin(torch.arange(B), idx), gamma2, gamma)
+            c, l_hat = data(gamma)
+            for name in ("z", "status", "iterations", "residual", "chol", "w2_lin"):
+                getattr(result, name)[idx] = getattr(res2, name)[better]
+    failed = result.status >= Status.MAX_ITER
+    if failed.any() and on_failure == "raise":
+        codes = {int(s): Status(int(s)).name for s in result.status[failed].unique()}
+        raise ContactSolverError(
+            f"contact solver failed for {int(failed.sum())} of {B} batch elements {_first(failed)} "
+            f"(status {codes}); pass on_failure='count' to continue with zero impulses for them",
+            status=result.status,
+            failed=failed.nonzero().flatten().tolist(),
+        )
+    z_star = torch.where(failed[:, None], torch.zeros_like(result.z), result.z)
+    if d > 1:
+        z_star = _frictionless_slide_limit(z_star, A64.detach(), q64.detach(), T.detach(), gamma, mu64.detach(), d)
+    z = ImplicitConeQP.apply(P, c, l_hat, z_star, result, d)
+    f = (gamma[:, None] * T * z).to(out_dtype)
+    if return_info:
+        return f, SolverInfo(status=result.status, iterations=result.iterations, residual=result.residual)
+    return f
+
+
+def _frictionless_slide_limit(z, A, q, T, gamma, mu, d):
+    """For μ = 0 contacts, set the (objective-free) tangential z to its limit as μ → 0⁺: −z_n·ĝ_t.
+
+    ĝ_t is the direction of the tangential contact velocity A f + q after the impulse.  The returned f does not
+    change (f_t = μ z_t = 0), but the backward pass then gives the one-sided derivative with respect to μ.
+    """
+    B, n = z.shape
+    K = n // d
+    zero_mu = mu == 0
+    if not zero_mu.any():
+        return z
+    f = gamma[:, None] * T * z
+    g = ((A @ f.unsqueeze(-1)).squeeze(-1) + q).view(B, K, d)[..., 1:]
+    g_norm = g.norm(dim=-1, keepdim=True)
+    scale = (A.diagonal(dim1=-2, dim2=-1).abs().amax(-1) * f.abs().amax(-1) + q.abs().amax(-1))[:, None, None]
+    sliding = g_norm > 1e-9 * scale.clamp_min(1e-300)
+    zk = z.view(B, K, d)
+    zt = torch.where(sliding, -zk[..., :1] * g / g_norm.clamp_min(1e-300), torch.zeros_like(g))
+    zt = torch.where(zero_mu[..., None], zt, zk[..., 1:])
+    return torch.cat([zk[..., :1], zt], -1).reshape(B, n)
