@@ -325,6 +325,35 @@ def solve_ipm(
     # ---- factor of H at the returned iterate, for the backward pass ----
     s_l, lam_l = best["s_l"], best["lam_l"]
     w2_l = onl * lam_l / s_l
-    w2_q = best["Wq_inv"] @ best["Wq_inv"].mT if soc else None
+    # The backward pass needs the symmetric NT scaling of the returned (s, λ): the accumulated W of the
+    # iterations is only determined up to a Lorentz transformation, which changes WᵀW in the rotational
+    # (tangent-to-the-cone) directions.
+    if soc:
+        _, w_inv = cones.SocNTScaling(best["s_q"], best["lam_q"]).matrices()
+        w2_q = w_inv @ w_inv.mT
+        if d == 3:
+            w2_q = _fix_rotation(w2_q, best["s_q"], best["lam_q"])
+    else:
+        w2_q = None
     L, _ = _cholesky(assemble(w2_l, w2_q))
     return IPMResult(z=z, status=status, iterations=iterations, residual=best["res"], chol=L, w2_lin=w2_l)
+
+
+def _fix_rotation(w2: torch.Tensor, s: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+    """Set W⁻² in the direction that rotates the tangential part of a 3-D cone to its limit ‖λ_t‖/‖s_t‖.
+
+    At a sliding contact s and λ lie on opposite rays of the cone boundary and turn together, so the
+    linearised complementarity gives ds_rot = −(‖s_t‖/‖λ_t‖)·dλ_rot.  The NT scaling of an iterate that is not
+    exactly centred gets this ratio only roughly; it is the one entry the backward pass is sensitive to.
+    w2: (..., 3, 3); s, lam: (..., 3).
+    """
+    st = s[..., 1:]
+    u = st / st.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    v = torch.zeros_like(s)
+    v[..., 1] = -u[..., 1]
+    v[..., 2] = u[..., 0]
+    target = lam[..., 1:].norm(dim=-1) / st.norm(dim=-1).clamp_min(1e-300)
+    current = (v * (w2 @ v.unsqueeze(-1)).squeeze(-1)).sum(-1)
+    ok = (st.norm(dim=-1) > 0) & torch.isfinite(target)
+    delta = torch.where(ok, target - current, torch.zeros_like(target))
+    return w2 + delta[..., None, None] * v.unsqueeze(-1) * v.unsqueeze(-2)

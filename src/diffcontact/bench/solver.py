@@ -1,0 +1,87 @@
+"""Solver benchmark: forward+backward time per problem, ours against the cvxpylayers reference, in one run."""
+
+from __future__ import annotations
+
+import platform
+import statistics
+import time
+
+import torch
+
+import diffcontact
+from diffcontact.solver import solve_cone_qp
+
+
+def _instances(gen: torch.Generator, B: int, K: int, d: int):
+    n = K * d
+    M = torch.randn(B, n, n, generator=gen, dtype=torch.float64)
+    A = M @ M.mT / n + 0.1 * torch.eye(n, dtype=torch.float64)
+    q = torch.randn(B, n, generator=gen, dtype=torch.float64)
+    mu = torch.rand(B, K, generator=gen, dtype=torch.float64)
+    lower = 0.3 * torch.rand(B, K, generator=gen, dtype=torch.float64)
+    return A, q, mu, lower
+
+
+def _time_fwd_bwd(solver, A, q, mu, lower, repeats: int) -> tuple[float, torch.Tensor]:
+    times, f = [], None
+    for _ in range(repeats + 1):  # the first run is warm-up
+        ins = [t.clone().requires_grad_() for t in (A, q, mu, lower)]
+        t0 = time.perf_counter()
+        f = solver(*ins)
+        f.sum().backward()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times[1:]), f.detach()
+
+
+def run_solver_benchmark(
+    batches=(1, 128, 800),
+    contacts=(1, 2, 3, 5, 19),
+    dims=(2, 3),
+    repeats: int = 5,
+    reference: bool = True,
+    ref_max_batch: int = 800,
+    seed: int = 0,
+    out: str | None = None,
+) -> list[dict]:
+    """Print (and optionally write as Markdown) the table; returns its rows."""
+    torch.set_num_threads(2)
+    if reference:
+        from diffcontact.solver.reference import solve_cone_qp_reference
+    print(
+        f"diffcontact {diffcontact.__version__}, torch {torch.__version__}, {platform.machine()}, "
+        f"{torch.get_num_threads()} threads; medians of {repeats} runs after one warm-up; forward+backward"
+    )
+    header = "| d | K | B | ours µs/problem | reference µs/problem | speed-up | max abs diff |"
+    lines = [header, "|---|---|---|---|---|---|---|"]
+    print(header)
+    rows = []
+    gen = torch.Generator().manual_seed(seed)
+    for d in dims:
+        for K in contacts:
+            for B in batches:
+                A, q, mu, lower = _instances(gen, B, K, d)
+                t_ours, f_ours = _time_fwd_bwd(solve_cone_qp, A, q, mu, lower, repeats)
+                row = {"d": d, "K": K, "B": B, "ours_us": 1e6 * t_ours / B}
+                if reference:
+                    Br = min(B, ref_max_batch)
+                    t_ref, f_ref = _time_fwd_bwd(
+                        solve_cone_qp_reference, A[:Br], q[:Br], mu[:Br], lower[:Br], repeats=1
+                    )
+                    row["ref_us"] = 1e6 * t_ref / Br
+                    row["speedup"] = row["ref_us"] / row["ours_us"]
+                    row["diff"] = float((f_ours[:Br] - f_ref).abs().max())
+                rows.append(row)
+                line = (
+                    f"| {d} | {K} | {B} | {row['ours_us']:.1f} | {row.get('ref_us', float('nan')):.1f} | "
+                    f"{row.get('speedup', float('nan')):.0f}× | {row.get('diff', float('nan')):.1e} |"
+                )
+                print(line, flush=True)
+                lines.append(line)
+    if out:
+        from pathlib import Path
+
+        path = Path(out)
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        tmp.write_text("\n".join(lines) + "\n")
+        tmp.replace(path)
+    return rows
