@@ -164,8 +164,8 @@ def test_contact_impulses_keep_equality_constraints(name):
 
 
 def test_equality_constraint_drift_over_100_steps():
-    """With RK4 accurate on the time scale (dt/8 for the gyroscope's spin of ~10 rad/s, a raised ground for
-    the pendulum and a closer wall for the gyroscope so that they hit), |Φ| stays below 1e-6 over 100 steps through impacts."""
+    """With RK4 accurate on the time scale (dt/8 for the gyroscope's spin of ~10 rad/s), |Φ| stays below 1e-6
+    over 100 steps through impacts (a raised ground and a closer wall make them happen)."""
     cases = [
         ("Gyro-e", {"walls": {"planes": [[0.0, 1.0, 0.0, 0.2]]}}, 8),
         ("CP3", {"walls": {"lines": [[0.0, 1.0, 0.6]]}}, 4),
