@@ -41,7 +41,7 @@ class ImplicitConeQP(torch.autograd.Function):
         res: IPMResult = ctx.result
         d = ctx.d
         B, n = z.shape
-        u = torch.cholesky_solve(grad_z.unsqueeze(-1), res.chol).squeeze(-1)
+        u = res.factor.solve(grad_z)
         grad_P = grad_c = grad_l = None
         if ctx.needs_input_grad[0]:
             grad_P = -0.5 * (u.unsqueeze(-1) * z.unsqueeze(-2) + z.unsqueeze(-1) * u.unsqueeze(-2))

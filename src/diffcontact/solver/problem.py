@@ -189,7 +189,7 @@ def solve_cone_qp(
         if len(idx):
             gamma = torch.where(torch.isin(torch.arange(B), idx), gamma2, gamma)
             c, l_hat = data(gamma)
-            for name in ("z", "status", "iterations", "residual", "chol", "w2_lin"):
+            for name in ("z", "status", "iterations", "residual", "s_l", "lam_l", "s_q", "lam_q"):
                 getattr(result, name)[idx] = getattr(res2, name)[better]
     failed = result.status >= Status.MAX_ITER
     if failed.any() and on_failure == "raise":

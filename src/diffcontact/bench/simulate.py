@@ -1,0 +1,87 @@
+"""Simulation benchmark: wall time of N trajectories x T frames per task (Algorithm 1, CM, float64)."""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+
+import torch
+
+import diffcontact
+from diffcontact.simulator import simulator_for
+from diffcontact.systems import BENCHMARK_TASKS, build_task
+
+
+def run_simulation_benchmark(
+    tasks=None,
+    n: int = 1000,
+    steps: int = 100,
+    threads: int = 2,
+    seed: int = 0,
+    warmup_steps: int = 5,
+    out: str | None = None,
+) -> list[dict]:
+    """Time each task's rollout (after a short warm-up rollout, excluded) and print a Markdown table.
+
+    Columns: initial-state sampling time, rollout time, ms per step, fraction of (trajectory, frame) pairs in
+    contact, solver calls and solver failures (problems not converged; the benchmark continues with
+    on_failure="count", which gives those contacts zero impulse, and reports the count). Returns the rows.
+    """
+    torch.set_num_threads(threads)
+    names = list(tasks or BENCHMARK_TASKS)
+    print(
+        f"diffcontact {diffcontact.__version__}, torch {torch.__version__}, python {platform.python_version()}, "
+        f"{platform.machine()}, {os.cpu_count()} CPUs, {torch.get_num_threads()} torch threads; "
+        f"N = {n} trajectories x T = {steps} frames, float64, exact contact model (CM)"
+    )
+    header = "| task | sample (s) | simulate (s) | ms / step | frames in contact | solver calls | solver failures |"
+    lines = [header, "|---|---|---|---|---|---|---|"]
+    print(header)
+    rows, total = [], 0.0
+    for name in names:
+        task = build_task(name)
+        calls, failed = [0], [0]
+
+        def counted(A, q, mu, lower=None, active=None, **_):
+            from diffcontact.solver import solve_cone_qp
+
+            f, info = solve_cone_qp(A, q, mu, lower, active, on_failure="count", return_info=True)
+            calls[0] += 1
+            failed[0] += int(info.n_failed)
+            return f
+
+        sim = simulator_for(task, solver=counted)
+        t0 = time.perf_counter()
+        state = task.sample(n, seed)
+        t_sample = time.perf_counter() - t0
+        with torch.no_grad():
+            sim.rollout(state, task.params, task.dt, warmup_steps)  # warm-up, excluded
+            calls[0] = failed[0] = 0
+            t0 = time.perf_counter()
+            _, _, hit = sim.rollout(state, task.params, task.dt, steps)
+            t_sim = time.perf_counter() - t0
+        total += t_sim
+        row = {
+            "task": name,
+            "sample_s": t_sample,
+            "simulate_s": t_sim,
+            "ms_per_step": 1e3 * t_sim / (steps - 1),
+            "contact_fraction": hit[:, 1:].float().mean().item(),
+            "solver_calls": calls[0],
+            "solver_failures": failed[0],
+        }
+        rows.append(row)
+        line = (
+            f"| {name} | {t_sample:.2f} | {t_sim:.1f} | {row['ms_per_step']:.0f} | "
+            f"{row['contact_fraction']:.1%} | {calls[0]} | {failed[0]} |"
+        )
+        lines.append(line)
+        print(line, flush=True)
+    last = f"| all {len(names)} | | {total:.1f} | | | | {sum(r['solver_failures'] for r in rows)} |"
+    lines.append(last)
+    print(last)
+    if out:
+        with open(out, "w") as fh:
+            fh.write("\n".join(lines) + "\n")
+    return rows
