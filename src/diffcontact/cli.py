@@ -41,6 +41,38 @@ def bench_solver(
     )
 
 
+@app.command("simulate")
+def simulate(
+    task: str = typer.Argument(..., help="Task name (configs/tasks/NAME.toml) or path to a task file."),
+    n: int = typer.Option(16, "--n", help="Number of trajectories N."),
+    steps: int = typer.Option(0, "--steps", help="Frames T per trajectory (0 = the task's frames)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the initial conditions."),
+    out: str = typer.Option(..., "--out", help="Output .npz: x, v (N,T,P,d), t, energy, contact, config, meta."),
+    gif: str = typer.Option("", "--gif", help="Also render trajectory 0 to this GIF."),
+    dynamics: str = typer.Option("lagrangian", help="lagrangian (x, v) or hamiltonian (x, p)."),
+) -> None:
+    """Simulate a task with its true parameters (exact contact model CM, float64)."""
+    from diffcontact.simulator import simulate_task
+
+    meta = simulate_task(task, n, steps or None, seed, out, gif or None, dynamics)
+    typer.echo(f"wrote {out}: {meta['n']} trajectories x {meta['frames']} frames of {meta['task']}")
+
+
+@bench_app.command("simulate")
+def bench_simulate(
+    tasks: list[str] = typer.Option([], "--task", "-t", help="Tasks (default: the 8 benchmark tasks)."),
+    n: int = typer.Option(1000, "--n", help="Trajectories per task."),
+    steps: int = typer.Option(100, "--steps", help="Frames per trajectory."),
+    threads: int = typer.Option(2, help="torch.set_num_threads."),
+    seed: int = typer.Option(0, help="Seed of the initial conditions."),
+    out: str = typer.Option("", help="Also write the table as Markdown to this file."),
+) -> None:
+    """Wall time of simulating N trajectories x T frames for each task (CM, float64)."""
+    from diffcontact.bench.simulate import run_simulation_benchmark
+
+    run_simulation_benchmark(tasks=tasks or None, n=n, steps=steps, threads=threads, seed=seed, out=out or None)
+
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 

@@ -74,3 +74,58 @@ def simulator_for(task, dynamics: str = "lagrangian", reg: float = 0.0, solver=N
         raise ConfigError(f"reg = {reg:g} is not >= 0")
     model = ContactModel(reg=reg, compensation=comp, solver=solver, on_failure=on_failure)
     return Simulator(task.system, dynamics, model)
+
+
+def simulate_task(task_name: str, n: int, steps: int | None, seed: int, out: str, gif: str | None = None,
+                  dynamics: str = "lagrangian") -> dict:
+    """Simulate ``n`` trajectories of a task with its true Params (CM, float64) and write ``out`` (.npz).
+
+    The file holds x, v (N, T, P, d), t (T,) in s, energy (N, T) in J, contact (N, T) bool, the task file's
+    text (``config``) and ``meta`` (JSON: versions, seed, dt, command arguments). It is written to a temporary
+    file and renamed. ``steps`` is the number of frames T (default: the task's ``frames``). Returns meta.
+    """
+    import json
+    import os
+    import platform
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from diffcontact import __version__
+    from diffcontact.systems import build_task
+
+    task = build_task(task_name)
+    frames = task.frames if steps is None else steps
+    if n < 1:
+        raise ConfigError(f"n = {n} is not >= 1")
+    if frames < 2:
+        raise ConfigError(f"steps = {frames} is not >= 2")
+    sim = simulator_for(task, dynamics=dynamics)
+    state = task.sample(n, seed)
+    with torch.no_grad():
+        x, v, hit = sim.rollout(state, task.params, task.dt, frames)
+        energy = task.system.energy(task.params, x.flatten(0, 1), v.flatten(0, 1)).reshape(n, frames)
+    meta = {
+        "task": task.config.name, "n": n, "frames": frames, "seed": seed, "dt": task.dt,
+        "dynamics": dynamics, "contact_model": "CM", "dtype": task.config.dtype,
+        "diffcontact": __version__, "torch": torch.__version__, "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
+    path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez_compressed(fh, x=x.numpy(), v=v.numpy(), t=np.arange(frames) * task.dt,
+                                energy=energy.numpy(), contact=hit.numpy(), config=np.array(task.config.source),
+                                meta=np.array(json.dumps(meta)))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    if gif:
+        from diffcontact.render import render_gif
+
+        render_gif(task.system, x[0].numpy(), hit[0].numpy(), gif, task.dt)
+    return meta
