@@ -35,7 +35,7 @@ def apply_blocks(blocks: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """
     n, q, _ = blocks.shape
     shaped = y.reshape(y.shape[0], n, q, *y.shape[2:])
-    out = torch.einsum("nij,bnj...->bni...", blocks, shaped)
+    out = torch.einsum("nij,bnj...->bni...", blocks.to(y.dtype), shaped)
     return out.reshape(y.shape)
 
 
