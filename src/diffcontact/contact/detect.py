@@ -41,6 +41,9 @@ class Detector:
         self.P, self.d, self.anchors = n_points, d, anchors
         self.dc = max((k.dc for k in self.kinds), default=d)
         self.count = sum(k.count for k in self.kinds)
+        n_ext = n_points + anchors.shape[0]
+        # static one-hot placement (K, m, P) of each kind's Jacobian terms (anchor columns dropped)
+        self._place = [torch.nn.functional.one_hot(k.cols, n_ext)[..., :n_points].double() for k in self.kinds]
         if self.kinds:
             self.slot = torch.cat([k.slot for k in self.kinds])
             self.frictionless = torch.cat([torch.full((k.count,), k.dc < self.dc) for k in self.kinds])
@@ -62,16 +65,13 @@ class Detector:
     def jacobian(self, x: torch.Tensor) -> torch.Tensor:
         """Rows of every candidate (B, K_max, dc, D), in the (P, d) layout, anchors dropped."""
         ext = self.extend(x)
-        B, n_ext = x.shape[0], ext.shape[1]
+        B = x.shape[0]
         blocks = []
-        for kind in self.kinds:  # a handful of declared kinds, not contacts
+        for kind, place in zip(self.kinds, self._place):  # a handful of declared kinds, not contacts
             _, vals = kind.evaluate(ext, rows=True)  # (B, K, m, dck, d)
-            K, m = kind.cols.shape
-            out = vals.new_zeros(K, n_ext, B, self.dc, self.d)
-            rows = torch.arange(K)[:, None].expand(K, m)
             padded = torch.nn.functional.pad(vals, (0, 0, 0, self.dc - kind.dc))
-            out = out.index_put((rows, kind.cols), padded.permute(1, 2, 0, 3, 4), accumulate=True)
-            blocks.append(out[:, : self.P].permute(2, 0, 3, 1, 4).reshape(B, K, self.dc, self.P * self.d))
+            rows = torch.einsum("kmp,bkmrd->bkrpd", place.to(x), padded)
+            blocks.append(rows.reshape(B, kind.count, self.dc, self.P * self.d))
         return torch.cat(blocks, dim=1)
 
     def detect(self, x: torch.Tensor) -> ContactSet | None:

@@ -12,18 +12,6 @@ from __future__ import annotations
 import torch
 
 
-def _scatter_rows(n_rows: int, n_ext: int, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor,
-                  P: int) -> torch.Tensor:
-    """Dense rows (B, R, P d) from values (B, R, m, d) placed at extended points ``cols`` (R, m).
-
-    Columns of anchors (index >= P) are dropped. ``rows`` (R, m) repeats the row index. Differentiable.
-    """
-    B, _, _, d = values.shape
-    out = values.new_zeros(n_rows, n_ext, B, d)
-    out = out.index_put((rows, cols), values.permute(1, 2, 0, 3))
-    return out[:, :P].permute(2, 0, 1, 3).reshape(B, n_rows, P * d)
-
-
 class Constraints:
     """The equality constraints of a system (static index tensors, built once).
 
@@ -42,8 +30,12 @@ class Constraints:
         self.n_dist = int(dist_i.shape[0])
         self.n_joint = int(joint_pts.shape[0])
         self.count = self.n_dist + d * self.n_joint
-        self._rows2 = torch.arange(self.n_dist)[:, None].expand(-1, 2)
-        self._cols2 = torch.stack([dist_i, dist_j], dim=-1) if self.n_dist else dist_i.new_zeros(0, 2)
+        # signed incidence (E1, P): +1 at i, −1 at j (anchor columns dropped), so a row is S ⊗ 2(x_i − x_j)
+        n_ext = n_points + anchors.shape[0]
+        inc = torch.zeros(self.n_dist, n_ext, dtype=dist_len.dtype)
+        inc[torch.arange(self.n_dist), dist_i] += 1.0
+        inc[torch.arange(self.n_dist), dist_j] -= 1.0
+        self._incidence = inc[:, :n_points]
         self._joint_jac = self._joint_rows()  # (d n_joint, D), constant
 
     def _joint_rows(self) -> torch.Tensor:
@@ -83,9 +75,8 @@ class Constraints:
         if self.n_dist:
             ext = self._ext(y) if y is x else torch.cat([y, y.new_zeros(B, self.anchors.shape[0], self.d)], 1)
             delta = 2.0 * (ext[:, self.dist_i] - ext[:, self.dist_j])  # (B, E1, d)
-            values = torch.stack([delta, -delta], dim=2)  # (B, E1, 2, d)
-            parts.append(_scatter_rows(self.n_dist, self.P + self.anchors.shape[0], self._rows2,
-                                       self._cols2, values, self.P))
+            rows = self._incidence.to(x)[None, :, :, None] * delta[:, :, None, :]  # (B, E1, P, d)
+            parts.append(rows.reshape(B, self.n_dist, self.P * self.d))
         if self.n_joint:
             J = self._joint_jac.to(x)
             parts.append((J if joint_value is None else torch.zeros_like(J)).expand(B, -1, -1))
