@@ -9,14 +9,11 @@ from solver_oracle import TOL_OBJ, clarabel_solve, kkt_residual, random_instance
 
 from diffcontact.solver import Status, solve_cone_qp
 
-# Measured limits of interior-point accuracy on sliding (cone-boundary) contacts: both our solver and Clarabel
-# at 1e-10 leave errors of up to a few 1e-6 along the boundary of the friction cone (checked against a
-# boundary-parametrised Nelder-Mead solve), so f is compared at this tolerance. Rays (d = 1) agree to 1e-8 up to
-# K = 5; with 19 rays and a rank-deficient A the measured disagreement in A·f reaches 2.3e-6.
-TOL_F_CONE = 1e-5
-TOL_F_RAY = 1e-5
-TOL_KKT_CONE = 1e-5
-TOL_KKT_RAY = 1e-7  # measured up to 6e-8 with K = 19
+# Clarabel itself (at 1e-10) leaves errors of up to a few 1e-6 along the boundary of a friction cone (its
+# solutions' KKT residuals, by the independent checker, reach 4e-6), while ours are polished to ~1e-12.  So f
+# is compared within TOL_F plus ten times Clarabel's own KKT residual, and our KKT residual is checked directly.
+TOL_F = 1e-8
+TOL_KKT = 1e-9
 
 CASES = [(K, d, rank_def) for K in (1, 2, 3, 5, 19) for d in (1, 2, 3) for rank_def in (False, True)]
 
@@ -28,9 +25,7 @@ def test_agrees_with_clarabel(K, d, rank_def):
     B, n = 34, K * d
     A, q, mu, lower = random_instance(gen, B, K, d, rank=max(1, n // 2) if rank_def else None)
     f, info = solve_cone_qp(A, q, mu, lower, return_info=True)
-    assert (info.status <= Status.INACCURATE).all()
-    tol_f = TOL_F_RAY if d == 1 else TOL_F_CONE
-    tol_kkt = TOL_KKT_RAY if d == 1 else TOL_KKT_CONE
+    assert (info.status == Status.CONVERGED).all()
     for b in range(B):
         An, qn, mun, ln, fb = A[b].numpy(), q[b].numpy(), mu[b].numpy(), lower[b].numpy(), f[b].numpy()
         f_ref, obj_ref = clarabel_solve(An, qn, mun, ln, d)
@@ -38,11 +33,12 @@ def test_agrees_with_clarabel(K, d, rank_def):
         obj = 0.5 * fb @ An @ fb + qn @ fb
         obj_scale = max(1.0, abs(obj_ref), np.abs(qn).max() * scale)
         assert abs(obj - obj_ref) <= TOL_OBJ * obj_scale, (b, obj, obj_ref)
+        tol_f = TOL_F + 10 * kkt_residual(An, qn, mun, ln, f_ref, d)
         if rank_def:  # the minimiser is not unique: compare the physical result A·f
             assert np.abs(An @ (fb - f_ref)).max() <= tol_f * scale, b
         else:
             assert np.abs(fb - f_ref).max() <= tol_f * scale, b
-        assert kkt_residual(An, qn, mun, ln, fb, d) <= tol_kkt, b
+        assert kkt_residual(An, qn, mun, ln, fb, d) <= TOL_KKT, b
 
 
 def test_frictionless_single_contact_closed_form():
@@ -53,7 +49,7 @@ def test_frictionless_single_contact_closed_form():
     lower = torch.rand(B, 1, generator=gen, dtype=torch.float64) * (torch.rand(B, 1, generator=gen) > 0.5)
     f = solve_cone_qp(A, q, torch.zeros(B, 1, dtype=torch.float64), lower)
     exact = torch.maximum(lower, (-q / A[:, 0]).clamp_min(0))
-    assert torch.allclose(f, exact, rtol=TOL_F_RAY, atol=TOL_F_RAY)
+    assert torch.allclose(f, exact, rtol=TOL_F, atol=TOL_F)
 
 
 @pytest.mark.parametrize("d", [2, 3])

@@ -91,21 +91,21 @@ def solve_ipm(
     c: torch.Tensor,
     lower: torch.Tensor,
     on: torch.Tensor,
+    on_l: torch.Tensor,
     d: int,
     *,
     tol: float = 1e-10,
     acceptable_tol: float = 1e-7,
     max_iter: int = 60,
+    polish_steps: int = 3,
 ) -> IPMResult:
     """Solve the batch in standard form (see module docstring).
 
-    P: (B, n, n) symmetric PSD; c: (B, n); lower: (B, K) ≥ 0; on: (B, K) bool; float64.
+    P: (B, n, n) symmetric PSD; c: (B, n); lower: (B, K) ≥ 0; on: (B, K) bool, contacts whose second-order
+    cone is used (d ≥ 2); on_l: (B, K) bool, contacts whose ray z_n ≥ lower is used; float64.
     The data are expected scaled to order one (see ``problem.py``); ``tol`` bounds the KKT residual relative
     to max(1, ‖z‖∞).
     """
-    # With a zero lower bound the ray z_n ≥ 0 is implied by the second-order cone; dropping it keeps the
-    # multipliers unique at separating (apex) contacts.
-    on_l = on & (lower > 0) if d >= 2 else on.clone()
     arrays = kernel.solve_batch(
         np.ascontiguousarray(P.numpy()),
         np.ascontiguousarray(c.numpy()),
@@ -116,6 +116,7 @@ def solve_ipm(
         tol,
         acceptable_tol,
         max_iter,
+        polish_steps,
     )
     z, s_l, lam_l, s_q, lam_q, status, iterations, residual = (torch.from_numpy(a) for a in arrays)
     return IPMResult(

@@ -654,8 +654,203 @@ def _newton(
                 dst_q[k, i] = 0.0
 
 
+@njit(cache=True, fastmath=_FM)
+def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q):
+    """Exact KKT residuals (complementarity s∘λ = 0, not the central path); returns their max relative to
+    max(1, ‖z‖∞), counting any violation of the cones as well."""
+    K = s_l.shape[0]
+    n = K * d
+    soc = d > 1
+    zmax = 1.0
+    worst = 0.0
+    for i in range(n):
+        t = c[i]
+        for j in range(n):
+            t += P[i, j] * z[j]
+        r_z[i] = t
+        zmax = max(zmax, abs(z[i]))
+    for k in range(K):
+        if onl[k]:
+            r_z[k * d] -= lam_l[k]
+            r_l[k] = -z[k * d] + s_l[k] - h_l[k]
+            comp_l[k] = s_l[k] * lam_l[k]
+            worst = max(worst, abs(r_l[k]), abs(comp_l[k]), -s_l[k], -lam_l[k])
+        else:
+            r_l[k] = 0.0
+            comp_l[k] = 0.0
+        if on[k] and soc:
+            rs = 0.0
+            rl = 0.0
+            dot = 0.0
+            for i in range(d):
+                r_z[k * d + i] -= lam_q[k, i]
+                r_q[k, i] = -z[k * d + i] + s_q[k, i]
+                worst = max(worst, abs(r_q[k, i]))
+                dot += s_q[k, i] * lam_q[k, i]
+                if i > 0:
+                    rs += s_q[k, i] * s_q[k, i]
+                    rl += lam_q[k, i] * lam_q[k, i]
+            comp_q[k, 0] = dot
+            for i in range(1, d):
+                comp_q[k, i] = s_q[k, 0] * lam_q[k, i] + lam_q[k, 0] * s_q[k, i]
+            for i in range(d):
+                worst = max(worst, abs(comp_q[k, i]))
+            worst = max(worst, math.sqrt(rs) - s_q[k, 0], math.sqrt(rl) - lam_q[k, 0])
+        else:
+            for i in range(d):
+                r_q[k, i] = 0.0
+                comp_q[k, i] = 0.0
+    for i in range(n):
+        worst = max(worst, abs(r_z[i]))
+    return worst / zmax
+
+
+@njit(cache=True, fastmath=_FM)
+def _gauss_solve(M, b):
+    """Solve M x = b in place (b becomes x) by Gaussian elimination with partial pivoting; False if singular."""
+    N = M.shape[0]
+    scale = 0.0
+    for i in range(N):
+        for j in range(N):
+            scale = max(scale, abs(M[i, j]))
+    for col in range(N):
+        piv = col
+        best = abs(M[col, col])
+        for r in range(col + 1, N):
+            if abs(M[r, col]) > best:
+                best = abs(M[r, col])
+                piv = r
+        if not (best > 1e-13 * scale):
+            return False
+        if piv != col:
+            for j in range(N):
+                t = M[col, j]
+                M[col, j] = M[piv, j]
+                M[piv, j] = t
+            t = b[col]
+            b[col] = b[piv]
+            b[piv] = t
+        for r in range(col + 1, N):
+            f = M[r, col] / M[col, col]
+            if f != 0.0:
+                for j in range(col, N):
+                    M[r, j] -= f * M[col, j]
+                b[r] -= f * b[col]
+    for i in range(N - 1, -1, -1):
+        t = b[i]
+        for j in range(i + 1, N):
+            t -= M[i, j] * b[j]
+        b[i] = t / M[i, i]
+    return True
+
+
+@njit(cache=True, fastmath=_FM)
+def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
+    """Newton steps on the exact optimality conditions from the interior-point solution.
+
+    The interior-point iterate stays on the central path (s∘λ = τe); at a strictly complementary solution the
+    exact conditions have a nonsingular Jacobian and Newton converges quadratically from it.  A step is kept
+    only if it lowers the exact KKT residual; degenerate solutions (singular Jacobian) are left as they are.
+    Returns the residual of the returned point.
+    """
+    K = s_l.shape[0]
+    n = K * d
+    soc = d > 1
+    N = n + K + K * d
+    rhs = pbuf[:N]
+    o = N
+    h_l = pbuf[o : o + K]
+    r_l = pbuf[o + K : o + 2 * K]
+    comp_l = pbuf[o + 2 * K : o + 3 * K]
+    slt = pbuf[o + 3 * K : o + 4 * K]
+    llt = pbuf[o + 4 * K : o + 5 * K]
+    o += 5 * K
+    r_z = pbuf[o : o + n]
+    zt = pbuf[o + n : o + 2 * n]
+    o += 2 * n
+    kd = K * d
+    r_q = pbuf[o : o + kd].reshape(K, d)
+    comp_q = pbuf[o + kd : o + 2 * kd].reshape(K, d)
+    sqt = pbuf[o + 2 * kd : o + 3 * kd].reshape(K, d)
+    lqt = pbuf[o + 3 * kd : o + 4 * kd].reshape(K, d)
+    for k in range(K):
+        h_l[k] = -low[k] if onl[k] else 0.0
+    res = _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q)
+    for _ in range(steps):
+        if res <= 1e-14:
+            break
+        for i in range(N):
+            rhs[i] = 0.0
+            for j in range(N):
+                M[i, j] = 0.0
+        for i in range(n):
+            rhs[i] = -r_z[i]
+            for j in range(n):
+                M[i, j] = P[i, j]
+        for k in range(K):
+            row = n + k
+            if onl[k]:
+                M[k * d, row] = -1.0
+                M[row, k * d] = lam_l[k]
+                M[row, row] = s_l[k]
+                rhs[row] = -comp_l[k] + lam_l[k] * r_l[k]
+            else:
+                M[row, row] = 1.0
+            for i in range(d):
+                row = n + K + k * d + i
+                if on[k] and soc:
+                    M[k * d + i, row] = -1.0
+                    # L(λ) dz_k + L(s) dλ = −s∘λ + L(λ) r_q
+                    lr = lam_q[k, 0] * r_q[k, i] if i > 0 else 0.0
+                    if i == 0:
+                        for j in range(d):
+                            M[row, k * d + j] = lam_q[k, j]
+                            M[row, n + K + k * d + j] = s_q[k, j]
+                            lr += lam_q[k, j] * r_q[k, j]
+                    else:
+                        M[row, k * d] = lam_q[k, i]
+                        M[row, k * d + i] = lam_q[k, 0]
+                        M[row, n + K + k * d] = s_q[k, i]
+                        M[row, n + K + k * d + i] = s_q[k, 0]
+                        lr += lam_q[k, i] * r_q[k, 0]
+                    rhs[row] = -comp_q[k, i] + lr
+                else:
+                    M[row, row] = 1.0
+        if not _gauss_solve(M, rhs):
+            break
+        for i in range(n):
+            zt[i] = z[i] + rhs[i]
+        for k in range(K):
+            if onl[k]:
+                llt[k] = lam_l[k] + rhs[n + k]
+                slt[k] = s_l[k] - r_l[k] + rhs[k * d]
+            else:
+                llt[k] = lam_l[k]
+                slt[k] = s_l[k]
+            for i in range(d):
+                if on[k] and soc:
+                    lqt[k, i] = lam_q[k, i] + rhs[n + K + k * d + i]
+                    sqt[k, i] = s_q[k, i] - r_q[k, i] + rhs[k * d + i]
+                else:
+                    lqt[k, i] = lam_q[k, i]
+                    sqt[k, i] = s_q[k, i]
+        new = _kkt_residual(P, c, h_l, on, onl, d, zt, slt, llt, sqt, lqt, r_z, r_l, r_q, comp_l, comp_q)
+        if not (new < res):
+            break
+        res = new
+        for i in range(n):
+            z[i] = zt[i]
+        for k in range(K):
+            s_l[k] = slt[k]
+            lam_l[k] = llt[k]
+            for i in range(d):
+                s_q[k, i] = sqt[k, i]
+                lam_q[k, i] = lqt[k, i]
+    return res
+
+
 @njit(cache=True, parallel=True, fastmath=_FM)
-def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter):
+def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
     """Solve every batch element.  P: (B, n, n); c: (B, n); low, on, onl: (B, K).  float64 / bool."""
     B, K = low.shape
     n = K * d
@@ -669,8 +864,11 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter):
     res = np.zeros(B)
     size = 2 * n * n + 8 * n + 20 * K + 22 * K * d + 4 * K * d * d + 3 * d + 4 * d * d
     n_chunks = min(B, 64)
+    N = n + K + K * d
     for ch in prange(n_chunks):
         buf = np.empty(size)
+        pM = np.empty((N, N))
+        pbuf = np.empty(N + 5 * K + 2 * n + 4 * K * d)
         for b in range(ch, B, n_chunks):
             st, it, r = _solve_one(
                 P[b],
@@ -689,6 +887,15 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter):
                 lam_q[b],
                 buf,
             )
+            if polish_steps > 0 and st <= INACCURATE:
+                r2 = _polish(
+                    P[b], c[b], low[b], on[b], onl[b], d, z[b], s_l[b], lam_l[b], s_q[b], lam_q[b], polish_steps,
+                    pM, pbuf,
+                )
+                if r2 < r:
+                    r = r2
+                    if r <= tol:
+                        st = CONVERGED
             status[b] = st
             iters[b] = it
             res[b] = r

@@ -160,19 +160,30 @@ def solve_cone_qp(
         gamma = torch.where(estimate > 0, estimate, c_abs)
         gamma = torch.where(gamma > 0, gamma, torch.ones_like(gamma))
     T = S * D * on_rows  # (B, n); zero on inactive rows
+    # A frictionless contact (μ = 0) has no cone: its tangential z is pinned to 0 by an identity block and only
+    # the ray z_n ≥ lower remains.  That keeps the optimality conditions nonsingular (for the polishing Newton
+    # steps and the backward pass) instead of leaving z_t free inside a cone.
+    zero_mu = active & (mu64.detach() == 0) if d > 1 else torch.zeros_like(active)
+    on_q = active & ~zero_mu if d > 1 else torch.zeros_like(active)
+    # (with a zero lower bound the ray z_n ≥ 0 is implied by the cone; dropping it keeps the multipliers unique
+    # at separating contacts)
+    on_l = active & ((low64.detach() > 0) | zero_mu) if d > 1 else active
+    pinned = torch.zeros(B, K, d, dtype=torch.float64)
+    pinned[..., 1:] = zero_mu.to(torch.float64)[..., None]
     P = T.unsqueeze(-1) * A64 * T.unsqueeze(-2)
-    P = P + torch.diag_embed(1.0 - on_rows)  # identity on inactive variables
+    P = P + torch.diag_embed(1.0 - on_rows + pinned.view(B, n))  # identity on inactive and pinned variables
 
     def data(gamma):
         return T * q64 / gamma[:, None], low64 / (sigma * gamma[:, None]) * onf
 
     def run(gamma, sel=None):
         c, l_hat = data(gamma)
-        args = (P, c, l_hat, active)
+        args = (P, c, l_hat, on_q, on_l)
         if sel is not None:
             args = tuple(a[sel] for a in args)
         res = ipm.solve_ipm(
-            *(a.detach() for a in args[:3]), args[3], d, tol=tol, acceptable_tol=acceptable_tol, max_iter=max_iter
+            *(a.detach() for a in args[:3]), args[3], args[4], d, tol=tol, acceptable_tol=acceptable_tol,
+            max_iter=max_iter,
         )
         return c, l_hat, res
 
