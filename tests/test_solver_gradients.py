@@ -65,10 +65,6 @@ def _one_sided_fd(fun, x, h=1e-7):
     return (fun(x + h) - fun(x)) / h
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="open defect: at μ = 0 exactly the normal component misses the cone coupling (tangential one is right)",
-)
 def test_gradient_at_zero_friction_is_the_right_derivative():
     """At μ = 0 a sliding contact's gradient w.r.t. μ is the one-sided derivative from μ > 0."""
     A = torch.tensor([[[2.0, 0.3], [0.3, 1.0]]], dtype=torch.float64)

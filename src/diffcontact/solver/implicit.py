@@ -42,7 +42,6 @@ class ImplicitConeQP(torch.autograd.Function):
     def backward(ctx, grad_z):  # noqa: D102
         (z,) = ctx.saved_tensors
         res: IPMResult = ctx.result
-        d = ctx.d
         B, n = z.shape
         u, v_l = adjoint_solve(res, grad_z)
         grad_P = grad_c = grad_l = None

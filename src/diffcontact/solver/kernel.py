@@ -889,8 +889,20 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
             )
             if polish_steps > 0 and st <= INACCURATE:
                 r2 = _polish(
-                    P[b], c[b], low[b], on[b], onl[b], d, z[b], s_l[b], lam_l[b], s_q[b], lam_q[b], polish_steps,
-                    pM, pbuf,
+                    P[b],
+                    c[b],
+                    low[b],
+                    on[b],
+                    onl[b],
+                    d,
+                    z[b],
+                    s_l[b],
+                    lam_l[b],
+                    s_q[b],
+                    lam_q[b],
+                    polish_steps,
+                    pM,
+                    pbuf,
                 )
                 if r2 < r:
                     r = r2

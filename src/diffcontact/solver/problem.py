@@ -182,7 +182,12 @@ def solve_cone_qp(
         if sel is not None:
             args = tuple(a[sel] for a in args)
         res = ipm.solve_ipm(
-            *(a.detach() for a in args[:3]), args[3], args[4], d, tol=tol, acceptable_tol=acceptable_tol,
+            *(a.detach() for a in args[:3]),
+            args[3],
+            args[4],
+            d,
+            tol=tol,
+            acceptable_tol=acceptable_tol,
             max_iter=max_iter,
         )
         return c, l_hat, res
@@ -212,8 +217,12 @@ def solve_cone_qp(
             failed=failed.nonzero().flatten().tolist(),
         )
     z_star = torch.where(failed[:, None], torch.zeros_like(result.z), result.z)
-    if d > 1:
-        z_star = _frictionless_slide_limit(z_star, A64.detach(), q64.detach(), T.detach(), gamma, mu64.detach(), d)
+    if d > 1 and zero_mu.any():
+        z_star, speed = _frictionless_slide_limit(z_star, A64.detach(), q64.detach(), T.detach(), gamma, zero_mu, d)
+        # At μ = 0⁺ a sliding contact's cone multiplier is its sliding speed ‖g_t‖ and adds μ‖g_t‖ to the normal
+        # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
+        c_n = c.view(B, K, d)[..., 0] - (mu64 * speed * sigma / gamma[:, None]) * zero_mu
+        c = torch.cat([c_n.unsqueeze(-1), c.view(B, K, d)[..., 1:]], -1).view(B, n)
     z = ImplicitConeQP.apply(P, c, l_hat, z_star, result, d)
     f = (gamma[:, None] * T * z).to(out_dtype)
     if return_info:
@@ -221,23 +230,21 @@ def solve_cone_qp(
     return f
 
 
-def _frictionless_slide_limit(z, A, q, T, gamma, mu, d):
-    """For μ = 0 contacts, set the (objective-free) tangential z to its limit as μ → 0⁺: −z_n·ĝ_t.
+def _frictionless_slide_limit(z, A, q, T, gamma, zero_mu, d):
+    """For μ = 0 contacts, set the tangential z to its limit as μ → 0⁺: −z_n·ĝ_t; also return ‖g_t‖.
 
-    ĝ_t is the direction of the tangential contact velocity A f + q after the impulse.  The returned f does not
-    change (f_t = μ z_t = 0), but the backward pass then gives the one-sided derivative with respect to μ.
+    g_t is the tangential contact velocity A f + q after the impulse and ĝ_t its direction.  The returned f does
+    not change (f_t = μ z_t = 0), but the backward pass then gives the one-sided derivative with respect to μ.
+    Returns z: (B, n) and the sliding speeds ‖g_t‖: (B, K) (0 where the contact sticks or μ > 0).
     """
     B, n = z.shape
     K = n // d
-    zero_mu = mu == 0
-    if not zero_mu.any():
-        return z
     f = gamma[:, None] * T * z
     g = ((A @ f.unsqueeze(-1)).squeeze(-1) + q).view(B, K, d)[..., 1:]
     g_norm = g.norm(dim=-1, keepdim=True)
     scale = (A.diagonal(dim1=-2, dim2=-1).abs().amax(-1) * f.abs().amax(-1) + q.abs().amax(-1))[:, None, None]
-    sliding = g_norm > 1e-9 * scale.clamp_min(1e-300)
+    sliding = (g_norm > 1e-9 * scale.clamp_min(1e-300)) & zero_mu[..., None]
     zk = z.view(B, K, d)
-    zt = torch.where(sliding, -zk[..., :1] * g / g_norm.clamp_min(1e-300), torch.zeros_like(g))
-    zt = torch.where(zero_mu[..., None], zt, zk[..., 1:])
-    return torch.cat([zk[..., :1], zt], -1).reshape(B, n)
+    zt = torch.where(sliding, -zk[..., :1] * g / g_norm.clamp_min(1e-300), zk[..., 1:])
+    speed = torch.where(sliding[..., 0], g_norm[..., 0], torch.zeros_like(g_norm[..., 0]))
+    return torch.cat([zk[..., :1], zt], -1).reshape(B, n), speed
