@@ -15,8 +15,9 @@ from diffcontact.simulator import simulate_task
 
 def test_simulate_writes_npz_and_gif(tmp_path):
     out, gif = tmp_path / "bd.npz", tmp_path / "bd.gif"
-    res = CliRunner().invoke(app, ["simulate", "BD5", "--n", "3", "--steps", "12", "--seed", "4",
-                                   "--out", str(out), "--gif", str(gif)])
+    res = CliRunner().invoke(
+        app, ["simulate", "BD5", "--n", "3", "--steps", "12", "--seed", "4", "--out", str(out), "--gif", str(gif)]
+    )
     assert res.exit_code == 0, res.output
     data = np.load(out)
     assert data["x"].shape == (3, 12, 15, 2) and data["v"].shape == (3, 12, 15, 2)

@@ -42,15 +42,23 @@ def test_benchmark_task_values_follow_the_spec():
     }
     for name, (P, d, E, K, slots, dt, frames) in table.items():
         t = build_task(name)
-        got = (t.system.n_points, t.system.d, t.system.constraints.count, t.system.detector.count,
-               t.system.n_slots, t.dt, t.frames)
+        got = (
+            t.system.n_points,
+            t.system.d,
+            t.system.constraints.count,
+            t.system.detector.count,
+            t.system.n_slots,
+            t.dt,
+            t.frames,
+        )
         assert got == (P, d, E, K, slots, dt, frames), name
     bp5 = build_task("BP5")
     assert bp5.params.mu[:10].tolist() == [0.5, 0.4, 0.6, 0.8, 0.9, 1.1, 0.7, 0.1, 0.0, 0.3]
     assert bp5.params.e[10:].eq(0.8).all() and bp5.params.mu[10:].eq(0.1).all()
     bd5 = build_task("BD5")
-    torch.testing.assert_close(bd5.params.inertia.moments[:, 0], torch.tensor([0.05, 0.1, 0.13, 0.15, 0.18],
-                                                                              dtype=torch.float64) ** 2 / 4)
+    torch.testing.assert_close(
+        bd5.params.inertia.moments[:, 0], torch.tensor([0.05, 0.1, 0.13, 0.15, 0.18], dtype=torch.float64) ** 2 / 4
+    )
     gyro = build_task("Gyro")
     assert (gyro.params.mu.item(), gyro.params.e.item()) == (0.1, 0.8)
     rope = build_task("Rope")

@@ -76,8 +76,15 @@ class Section:
     def get(self, key: str, default: Any = None) -> Any:
         return self.data.get(key, default)
 
-    def number(self, key: str, default: float | None = None, *, lo: float | None = None,
-               hi: float | None = None, lo_open: bool = False) -> float:
+    def number(
+        self,
+        key: str,
+        default: float | None = None,
+        *,
+        lo: float | None = None,
+        hi: float | None = None,
+        lo_open: bool = False,
+    ) -> float:
         """A finite real in [lo, hi] (or (lo, hi] with ``lo_open``)."""
         if key not in self.data:
             if default is None:
@@ -97,9 +104,16 @@ class Section:
             raise ConfigError(f"{self._name(key)} = {value} is smaller than {lo}")
         return value
 
-    def numbers(self, key: str, *, length: int | tuple[int, ...] | None = None, lo: float | None = None,
-                hi: float | None = None, lo_open: bool = False, default: list[float] | None = None
-                ) -> list[float]:
+    def numbers(
+        self,
+        key: str,
+        *,
+        length: int | tuple[int, ...] | None = None,
+        lo: float | None = None,
+        hi: float | None = None,
+        lo_open: bool = False,
+        default: list[float] | None = None,
+    ) -> list[float]:
         """A list of finite reals, each in range, of an allowed length (an int or a tuple of ints)."""
         if key not in self.data:
             if default is None:

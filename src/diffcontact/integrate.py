@@ -18,5 +18,4 @@ def rk4_step(field: Field, x: torch.Tensor, y: torch.Tensor, dt: float) -> tuple
     k2x, k2y = field(x + dt * k1x / 3, y + dt * k1y / 3)
     k3x, k3y = field(x + dt * (k2x - k1x / 3), y + dt * (k2y - k1y / 3))
     k4x, k4y = field(x + dt * (k1x - k2x + k3x), y + dt * (k1y - k2y + k3y))
-    return (x + dt * (k1x + 3 * (k2x + k3x) + k4x) / 8,
-            y + dt * (k1y + 3 * (k2y + k3y) + k4y) / 8)
+    return (x + dt * (k1x + 3 * (k2x + k3x) + k4x) / 8, y + dt * (k1y + 3 * (k2y + k3y) + k4y) / 8)

@@ -35,8 +35,18 @@ def _draw_2d(ax, system: System, x: np.ndarray, hit: bool) -> None:
         ax.plot([ext[i, 0], ext[j, 0]], [ext[i, 1], ext[j, 1]], color="0.4", lw=1.5)
     for a in anchors:
         ax.plot(a[0], a[1], marker="s", color="k", ms=4)
-    colors = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink",
-              "tab:gray", "tab:olive", "tab:cyan"]
+    colors = [
+        "tab:blue",
+        "tab:orange",
+        "tab:green",
+        "tab:red",
+        "tab:purple",
+        "tab:brown",
+        "tab:pink",
+        "tab:gray",
+        "tab:olive",
+        "tab:cyan",
+    ]
     for b, r in enumerate(draw.radii.tolist()):
         centre = x[b * q]
         ax.add_patch(mpatches.Circle(centre, r, fc=colors[b % len(colors)], ec="k", alpha=0.8))
@@ -74,8 +84,7 @@ def _draw_3d(ax, system: System, x: np.ndarray, hit: bool) -> None:
     ax.set_zlim(lo, hi)
 
 
-def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | Path, dt: float,
-               every: int = 1) -> None:
+def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | Path, dt: float, every: int = 1) -> None:
     """Write a GIF of one trajectory: x (T, P, d) positions, contact (T,) flags; frame time dt in s."""
     import imageio.v2 as imageio
     import matplotlib
@@ -98,8 +107,9 @@ def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | P
             ax.set_xlim(x0 - pad, x1 + pad)
             ax.set_ylim(y0 - pad, y1 + pad)
             ax.set_aspect("equal")
-        ax.text2D(0.02, 0.95, f"t = {t * dt:.3f} s", transform=ax.transAxes, fontsize=8) if system.d == 3 \
-            else ax.text(0.02, 0.95, f"t = {t * dt:.3f} s", transform=ax.transAxes, fontsize=8)
+        ax.text2D(0.02, 0.95, f"t = {t * dt:.3f} s", transform=ax.transAxes, fontsize=8) if system.d == 3 else ax.text(
+            0.02, 0.95, f"t = {t * dt:.3f} s", transform=ax.transAxes, fontsize=8
+        )
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     plt.close(fig)

@@ -34,8 +34,7 @@ class Simulator:
         if self.dynamics not in DYNAMICS:
             raise ConfigError(f"dynamics = {self.dynamics!r} is not one of {list(DYNAMICS)}")
 
-    def flow(self, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float
-             ) -> tuple[torch.Tensor, torch.Tensor]:
+    def flow(self, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
         """The smooth part: one RK4 step (no contacts) from (x, v), returning (x, v) at t + dt."""
         cons = self.system.constraints
         if self.dynamics == "lagrangian":
@@ -49,8 +48,9 @@ class Simulator:
         v1, hit = self.contact_model(self.system.constraints, self.system.detector, params, x1, v1, dt)
         return State(x1, v1), hit
 
-    def rollout(self, state: State, params: Params, dt: float, frames: int
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def rollout(
+        self, state: State, params: Params, dt: float, frames: int
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``frames`` frames starting at ``state`` (frame 0): x, v (B, T, P, d) and in_contact (B, T).
 
         Raises FloatingPointError naming the frame and batch element if the state becomes non-finite.
@@ -66,8 +66,9 @@ class Simulator:
         return torch.stack(xs, 1), torch.stack(vs, 1), torch.stack(flags, 1)
 
 
-def simulator_for(task, dynamics: str = "lagrangian", reg: float = 0.0, solver=None,
-                  on_failure: str = "raise") -> Simulator:
+def simulator_for(
+    task, dynamics: str = "lagrangian", reg: float = 0.0, solver=None, on_failure: str = "raise"
+) -> Simulator:
     """The Simulator of a Task: its contact compensation from ``contact.compensation`` (default 1/8)."""
     comp = task.config.section("contact").number("compensation", 0.125, lo=0.0, hi=1.0)
     if reg < 0:
@@ -76,8 +77,9 @@ def simulator_for(task, dynamics: str = "lagrangian", reg: float = 0.0, solver=N
     return Simulator(task.system, dynamics, model)
 
 
-def simulate_task(task_name: str, n: int, steps: int | None, seed: int, out: str, gif: str | None = None,
-                  dynamics: str = "lagrangian") -> dict:
+def simulate_task(
+    task_name: str, n: int, steps: int | None, seed: int, out: str, gif: str | None = None, dynamics: str = "lagrangian"
+) -> dict:
     """Simulate ``n`` trajectories of a task with its true Params (CM, float64) and write ``out`` (.npz).
 
     The file holds x, v (N, T, P, d), t (T,) in s, energy (N, T) in J, contact (N, T) bool, the task file's
@@ -107,9 +109,17 @@ def simulate_task(task_name: str, n: int, steps: int | None, seed: int, out: str
         x, v, hit = sim.rollout(state, task.params, task.dt, frames)
         energy = task.system.energy(task.params, x.flatten(0, 1), v.flatten(0, 1)).reshape(n, frames)
     meta = {
-        "task": task.config.name, "n": n, "frames": frames, "seed": seed, "dt": task.dt,
-        "dynamics": dynamics, "contact_model": "CM", "dtype": task.config.dtype,
-        "diffcontact": __version__, "torch": torch.__version__, "numpy": np.__version__,
+        "task": task.config.name,
+        "n": n,
+        "frames": frames,
+        "seed": seed,
+        "dt": task.dt,
+        "dynamics": dynamics,
+        "contact_model": "CM",
+        "dtype": task.config.dtype,
+        "diffcontact": __version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
         "python": platform.python_version(),
     }
     path = Path(out)
@@ -117,9 +127,16 @@ def simulate_task(task_name: str, n: int, steps: int | None, seed: int, out: str
     fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, x=x.numpy(), v=v.numpy(), t=np.arange(frames) * task.dt,
-                                energy=energy.numpy(), contact=hit.numpy(), config=np.array(task.config.source),
-                                meta=np.array(json.dumps(meta)))
+            np.savez_compressed(
+                fh,
+                x=x.numpy(),
+                v=v.numpy(),
+                t=np.arange(frames) * task.dt,
+                energy=energy.numpy(),
+                contact=hit.numpy(),
+                config=np.array(task.config.source),
+                meta=np.array(json.dumps(meta)),
+            )
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

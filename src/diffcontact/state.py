@@ -32,8 +32,10 @@ class State:
         bad = ~(torch.isfinite(self.x).flatten(1).all(1) & torch.isfinite(self.v).flatten(1).all(1))
         if bool(bad.any()):
             idx = int(torch.nonzero(bad)[0])
-            raise FloatingPointError(f"{where}: non-finite position or velocity in batch element {idx} "
-                                     f"({int(bad.sum())} of {bad.numel()} elements affected)")
+            raise FloatingPointError(
+                f"{where}: non-finite position or velocity in batch element {idx} "
+                f"({int(bad.sum())} of {bad.numel()} elements affected)"
+            )
         return self
 
 

@@ -93,5 +93,12 @@ class Detector:
         J = self.jacobian(xs)
         J = torch.gather(J, 1, order[:, :, None, None].expand(-1, -1, self.dc, J.shape[-1]))
         J = (J * active[:, :, None, None]).reshape(len(index), k_c * self.dc, -1)
-        return ContactSet(index=index, active=active, gap=gap, J=J, slot=self.slot[order],
-                          frictionless=self.frictionless[order], dc=self.dc)
+        return ContactSet(
+            index=index,
+            active=active,
+            gap=gap,
+            J=J,
+            slot=self.slot[order],
+            frictionless=self.frictionless[order],
+            dc=self.dc,
+        )

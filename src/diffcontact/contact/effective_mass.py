@@ -10,8 +10,9 @@ from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import apply_blocks
 
 
-def constrained_inverse_inertia_times(Minv: torch.Tensor, constraints: Constraints, x: torch.Tensor,
-                                      Jc: torch.Tensor) -> torch.Tensor:
+def constrained_inverse_inertia_times(
+    Minv: torch.Tensor, constraints: Constraints, x: torch.Tensor, Jc: torch.Tensor
+) -> torch.Tensor:
     """M̂⁻¹ J_Cᵀ: (B, D, C) for M⁻¹ blocks (n, q, q), positions x (B, P, d) and J_C (B, C, D).
 
     Never forms an inverse or an eigendecomposition: G = J_E M⁻¹ J_Eᵀ is factored by Cholesky.

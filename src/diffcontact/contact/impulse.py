@@ -44,8 +44,15 @@ class ContactModel:
     on_failure: str = "raise"
     lower_floor: float = 1e-9
 
-    def impulses(self, constraints: Constraints, params: Params, x: torch.Tensor, v: torch.Tensor,
-                 contacts: ContactSet, dt: float) -> torch.Tensor:
+    def impulses(
+        self,
+        constraints: Constraints,
+        params: Params,
+        x: torch.Tensor,
+        v: torch.Tensor,
+        contacts: ContactSet,
+        dt: float,
+    ) -> torch.Tensor:
         """Velocity jumps Δv (B', P, d) of the colliding elements ``contacts.index`` (x, v: (B, P, d))."""
         solve = self.solver or _default_solver()
         idx, dc = contacts.index, contacts.dc
@@ -70,8 +77,9 @@ class ContactModel:
         return (MhJt @ (f_c + f_r)[..., None]).reshape(Bp, P, d)
 
     @torch.no_grad()
-    def target_velocity(self, constraints: Constraints, xs: torch.Tensor, contacts: ContactSet,
-                        dt: float) -> torch.Tensor:
+    def target_velocity(
+        self, constraints: Constraints, xs: torch.Tensor, contacts: ContactSet, dt: float
+    ) -> torch.Tensor:
         """v*_C (B', C) of paper Eq. S.17: v_d = −compensation·gap/dt on normals (0 on tangents), lifted by
         the pseudo-inverse of J_C (min-norm least squares, Eq. S.18), projected onto J_E y = 0 and mapped
         back by J_C."""
@@ -87,8 +95,9 @@ class ContactModel:
             y = y - JE.mT @ torch.cholesky_solve(JE @ y, L)
         return (Jc @ y)[..., 0]
 
-    def __call__(self, constraints: Constraints, detector, params: Params, x: torch.Tensor,
-                 v: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    def __call__(
+        self, constraints: Constraints, detector, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Apply the contact model to a batch: returns (v⁺ (B, P, d), in_contact (B,) bool)."""
         contacts = detector.detect(x)
         flag = torch.zeros(x.shape[0], dtype=torch.bool)

@@ -105,8 +105,9 @@ class DiskRimPlanes(ContactKind):
             return gap, None
         cos_a, sin_a = -s[..., 0] / rho, -s[..., 1] / rho
         R = self.R.to(x)
-        offset = h[:, None] * axes[..., 2, :] + R[:, None] * (cos_a[..., None] * axes[..., 0, :]
-                                                             + sin_a[..., None] * axes[..., 1, :])
+        offset = h[:, None] * axes[..., 2, :] + R[:, None] * (
+            cos_a[..., None] * axes[..., 0, :] + sin_a[..., None] * axes[..., 1, :]
+        )
         w = point_weights(x, self.pts, offset)
         return gap, w[..., None, None] * self.frame.to(x)[None, :, None]
 

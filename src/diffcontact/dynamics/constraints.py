@@ -20,9 +20,18 @@ class Constraints:
     E = E1 + d n_joints scalar rows.
     """
 
-    def __init__(self, n_points: int, d: int, anchors: torch.Tensor, dist_i: torch.Tensor,
-                 dist_j: torch.Tensor, dist_len: torch.Tensor, joint_pts: torch.Tensor,
-                 joint_w: torch.Tensor, joint_at: torch.Tensor):
+    def __init__(
+        self,
+        n_points: int,
+        d: int,
+        anchors: torch.Tensor,
+        dist_i: torch.Tensor,
+        dist_j: torch.Tensor,
+        dist_len: torch.Tensor,
+        joint_pts: torch.Tensor,
+        joint_w: torch.Tensor,
+        joint_at: torch.Tensor,
+    ):
         self.P, self.d = n_points, d
         self.anchors = anchors
         self.dist_i, self.dist_j, self.dist_len = dist_i, dist_j, dist_len

@@ -19,8 +19,9 @@ def hamiltonian(params: Params, x: torch.Tensor, p: torch.Tensor) -> torch.Tenso
     return 0.5 * (p * apply_blocks(Minv, p)).flatten(1).sum(-1) + params.potential(x)
 
 
-def hamiltonian_field(constraints: Constraints, params: Params, x: torch.Tensor,
-                      p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def hamiltonian_field(
+    constraints: Constraints, params: Params, x: torch.Tensor, p: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The projected Hamiltonian vector field (ẋ, ṗ), each (B, P, d)."""
     B, P, d = x.shape
     outer = torch.is_grad_enabled()
@@ -32,7 +33,7 @@ def hamiltonian_field(constraints: Constraints, params: Params, x: torch.Tensor,
     dHdx = torch.zeros_like(x) if dHdx is None else dHdx
     Y = torch.cat([dHdp.reshape(B, -1), -dHdx.reshape(B, -1)], dim=-1)  # J∇H, (B, 2D)
     if constraints.count == 0:
-        return Y[:, : P * d].reshape(B, P, d), Y[:, P * d:].reshape(B, P, d)
+        return Y[:, : P * d].reshape(B, P, d), Y[:, P * d :].reshape(B, P, d)
     _, Minv = body_blocks(params.inertia)
     v = apply_blocks(Minv, p)
     JE = constraints.jac(x)  # (B, E, D)
@@ -40,11 +41,11 @@ def hamiltonian_field(constraints: Constraints, params: Params, x: torch.Tensor,
     MinvJt = apply_blocks(Minv, JE.mT.reshape(B, P, d, -1)).reshape(B, P * d, -1)
     zeros = torch.zeros_like(JE.mT)
     DPsi = torch.cat([torch.cat([JE.mT, dPhidot_dx.mT], -1), torch.cat([zeros, MinvJt], -1)], dim=-2)
-    JDPsi = torch.cat([DPsi[:, P * d:], -DPsi[:, : P * d]], dim=-2)  # J DΨ, (B, 2D, 2E)
+    JDPsi = torch.cat([DPsi[:, P * d :], -DPsi[:, : P * d]], dim=-2)  # J DΨ, (B, 2D, 2E)
     S = DPsi.mT @ JDPsi  # (B, 2E, 2E), antisymmetric, invertible for independent constraints
     corr = JDPsi @ torch.linalg.solve(S, DPsi.mT @ Y[..., None])
     Z = Y - corr[..., 0]
-    return Z[:, : P * d].reshape(B, P, d), Z[:, P * d:].reshape(B, P, d)
+    return Z[:, : P * d].reshape(B, P, d), Z[:, P * d :].reshape(B, P, d)
 
 
 def momentum(params: Params, v: torch.Tensor) -> torch.Tensor:

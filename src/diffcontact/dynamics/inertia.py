@@ -41,8 +41,7 @@ def apply_blocks(blocks: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 def dense(blocks: torch.Tensor, d: int) -> torch.Tensor:
     """The full (D, D) matrix kron(blockdiag(blocks), I_d), D = P d, in the flattened (P, d) layout."""
-    return torch.kron(torch.block_diag(*blocks.unbind(0)), torch.eye(d, dtype=blocks.dtype,
-                                                                      device=blocks.device))
+    return torch.kron(torch.block_diag(*blocks.unbind(0)), torch.eye(d, dtype=blocks.dtype, device=blocks.device))
 
 
 def kinetic_energy(inertia: Inertia, v: torch.Tensor) -> torch.Tensor:

@@ -29,8 +29,9 @@ def potential_force(potential: Potential, x: torch.Tensor) -> torch.Tensor:
     return -grad
 
 
-def constrained_acceleration(constraints: Constraints, Minv: torch.Tensor, x: torch.Tensor,
-                             v: torch.Tensor, force: torch.Tensor) -> torch.Tensor:
+def constrained_acceleration(
+    constraints: Constraints, Minv: torch.Tensor, x: torch.Tensor, v: torch.Tensor, force: torch.Tensor
+) -> torch.Tensor:
     """a = M⁻¹f − M⁻¹J_Eᵀλ (B, P, d) for force (B, P, d) and M⁻¹ blocks (n, q, q); Cholesky solve in λ."""
     a0 = apply_blocks(Minv, force)
     if constraints.count == 0:
@@ -40,17 +41,20 @@ def constrained_acceleration(constraints: Constraints, Minv: torch.Tensor, x: to
     Jdot = constraints.jac_dot(x, v)
     MinvJt = apply_blocks(Minv, J.mT.reshape(B, P, d, -1)).reshape(B, P * d, -1)
     G = J @ MinvJt
-    rhs = (J @ a0.reshape(B, -1, 1) + Jdot @ v.reshape(B, -1, 1))
+    rhs = J @ a0.reshape(B, -1, 1) + Jdot @ v.reshape(B, -1, 1)
     L, info = torch.linalg.cholesky_ex(G)
     if bool((info != 0).any()):
-        raise FloatingPointError("constrained dynamics: J_E M⁻¹ J_Eᵀ is not positive definite "
-                                 f"in {int((info != 0).sum())} batch elements (degenerate constraints)")
+        raise FloatingPointError(
+            "constrained dynamics: J_E M⁻¹ J_Eᵀ is not positive definite "
+            f"in {int((info != 0).sum())} batch elements (degenerate constraints)"
+        )
     lam = torch.cholesky_solve(rhs, L)
     return a0 - (MinvJt @ lam).reshape(B, P, d)
 
 
-def lagrangian_field(constraints: Constraints, params: Params, x: torch.Tensor,
-                     v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def lagrangian_field(
+    constraints: Constraints, params: Params, x: torch.Tensor, v: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The vector field (ẋ, v̇) = (v, a(x, v)) of the constrained Lagrangian system, each (B, P, d)."""
     _, Minv = body_blocks(params.inertia)
     return v, constrained_acceleration(constraints, Minv, x, v, potential_force(params.potential, x))

@@ -30,8 +30,7 @@ class Springs:
     Indices >= P refer to fixed ``anchors`` (n_anchors, d). There is no ½ factor (as in the benchmark's rope).
     """
 
-    def __init__(self, i: torch.Tensor, j: torch.Tensor, rest: torch.Tensor, k: torch.Tensor,
-                 anchors: torch.Tensor):
+    def __init__(self, i: torch.Tensor, j: torch.Tensor, rest: torch.Tensor, k: torch.Tensor, anchors: torch.Tensor):
         self.i, self.j, self.rest, self.k, self.anchors = i, j, rest, k, anchors
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:

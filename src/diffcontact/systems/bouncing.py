@@ -60,12 +60,22 @@ def build_bouncing(cfg: TaskConfig) -> Task:
     dist = rigid_body_distances(n, d) if kind == "disk" else None
     P = n * q
     system = System(
-        name=cfg.name, d=d, n_bodies=n, points_per_body=q, anchors=anchors,
+        name=cfg.name,
+        d=d,
+        n_bodies=n,
+        points_per_body=q,
+        anchors=anchors,
         constraints=make_constraints(P, d, anchors, dist=dist),
-        detector=Detector(kinds, P, anchors, d), n_slots=n_slots,
-        drawing=Drawing(radii=r, segments=torch.zeros(0, 2, dtype=torch.long), plane_normal=wall_n,
-                        plane_offset=wall_c, shape="ball" if kind == "point" else "disk2d",
-                        view=_view(cfg)),
+        detector=Detector(kinds, P, anchors, d),
+        n_slots=n_slots,
+        drawing=Drawing(
+            radii=r,
+            segments=torch.zeros(0, 2, dtype=torch.long),
+            plane_normal=wall_n,
+            plane_offset=wall_c,
+            shape="ball" if kind == "point" else "disk2d",
+            view=_view(cfg),
+        ),
     )
     pot = cfg.section("potential")
     g = pot.number("gravity", 0.0, lo=0.0)
@@ -84,8 +94,9 @@ def _view(cfg: TaskConfig) -> tuple[tuple[float, float], ...]:
     return tuple((lo, hi) for lo, hi in box)
 
 
-def disk_points(centre: torch.Tensor, theta: torch.Tensor, v: torch.Tensor, omega: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+def disk_points(
+    centre: torch.Tensor, theta: torch.Tensor, v: torch.Tensor, omega: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Points (c, c + e1, c + e2) and their velocities of 2D disks: centre, v (B, n, 2); θ, ω (B, n).
 
     e1, e2 are the columns of R(θ) and Ṙ = ω [[0, −1], [1, 0]] R.

@@ -20,8 +20,7 @@ def coefficients(cfg: TaskConfig, n_slots: int) -> tuple[torch.Tensor, torch.Ten
     sec = cfg.section("contact")
     mu = sec.numbers("mu", length=(1, n_slots), lo=0.0)
     cor = sec.numbers("cor", length=(1, n_slots), lo=0.0, hi=1.0)
-    return (torch.tensor(mu, dtype=F64).expand(n_slots).clone(),
-            torch.tensor(cor, dtype=F64).expand(n_slots).clone())
+    return (torch.tensor(mu, dtype=F64).expand(n_slots).clone(), torch.tensor(cor, dtype=F64).expand(n_slots).clone())
 
 
 def planes(sec: Section, key: str, d: int, default=None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -64,8 +63,13 @@ def pairs(n: int) -> tuple[torch.Tensor, torch.Tensor]:
     return i, j
 
 
-def rejection_sample(draw: Callable[[int], State], gaps: Callable[[torch.Tensor], torch.Tensor], n: int,
-                     what: str, max_rounds: int = 1000) -> State:
+def rejection_sample(
+    draw: Callable[[int], State],
+    gaps: Callable[[torch.Tensor], torch.Tensor],
+    n: int,
+    what: str,
+    max_rounds: int = 1000,
+) -> State:
     """Draw batches of candidates until n have no contact (all gaps >= 0); keep the first n accepted."""
     xs, vs, have = [], [], 0
     for _ in range(max_rounds):
@@ -76,8 +80,10 @@ def rejection_sample(draw: Callable[[int], State], gaps: Callable[[torch.Tensor]
         have += int(ok.sum())
         if have >= n:
             return State(torch.cat(xs)[:n], torch.cat(vs)[:n])
-    raise ConfigError(f"{what}: could not sample {n} initial states out of contact in {max_rounds} rounds "
-                      "(bodies too large for the box?)")
+    raise ConfigError(
+        f"{what}: could not sample {n} initial states out of contact in {max_rounds} rounds "
+        "(bodies too large for the box?)"
+    )
 
 
 def check_lengths(sec: Section, key: str, values: list, n: int) -> None:

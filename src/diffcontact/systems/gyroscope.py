@@ -27,6 +27,7 @@ from diffcontact.systems.common import (
 
 def euler_zxz(phi: torch.Tensor, theta: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
     """Rotation matrices (B, 3, 3) of intrinsic ZXZ Euler angles: R = R_z(φ) R_x(θ) R_z(ψ)."""
+
     def rz(a):
         c, s, z, o = torch.cos(a), torch.sin(a), torch.zeros_like(a), torch.ones_like(a)
         return torch.stack([c, -s, z, s, c, z, z, z, o], -1).reshape(*a.shape, 3, 3)
@@ -41,8 +42,9 @@ def euler_zxz(phi: torch.Tensor, theta: torch.Tensor, psi: torch.Tensor) -> torc
 def hat(w: torch.Tensor) -> torch.Tensor:
     """Skew matrices [w]× (B, 3, 3) of vectors w (B, 3)."""
     z = torch.zeros_like(w[..., 0])
-    return torch.stack([z, -w[..., 2], w[..., 1], w[..., 2], z, -w[..., 0], -w[..., 1], w[..., 0], z],
-                       -1).reshape(*w.shape[:-1], 3, 3)
+    return torch.stack([z, -w[..., 2], w[..., 1], w[..., 2], z, -w[..., 0], -w[..., 1], w[..., 0], z], -1).reshape(
+        *w.shape[:-1], 3, 3
+    )
 
 
 def build_gyroscope(cfg: TaskConfig) -> Task:
@@ -60,22 +62,44 @@ def build_gyroscope(cfg: TaskConfig) -> Task:
     anchors = torch.zeros(1, d, dtype=F64)
     joint_b = -com  # body-frame point of the joint
     joints = (torch.arange(4)[None], torch.cat([1.0 - joint_b.sum()[None], joint_b])[None], anchors.clone())
-    kinds = (DiskRimPlanes(torch.zeros(n_slots, dtype=torch.long), wall_n, wall_c,
-                           torch.full((n_slots,), radius, dtype=F64), torch.full((n_slots,), height, dtype=F64),
-                           torch.arange(n_slots), dc=d),)
+    kinds = (
+        DiskRimPlanes(
+            torch.zeros(n_slots, dtype=torch.long),
+            wall_n,
+            wall_c,
+            torch.full((n_slots,), radius, dtype=F64),
+            torch.full((n_slots,), height, dtype=F64),
+            torch.arange(n_slots),
+            dc=d,
+        ),
+    )
     reach = float(com.norm()) + radius
     system = System(
-        name=cfg.name, d=d, n_bodies=1, points_per_body=4, anchors=anchors,
+        name=cfg.name,
+        d=d,
+        n_bodies=1,
+        points_per_body=4,
+        anchors=anchors,
         constraints=make_constraints(4, d, anchors, dist=rigid_body_distances(1, d), joints=joints),
-        detector=Detector(kinds, 4, anchors, d), n_slots=n_slots,
-        drawing=Drawing(radii=torch.tensor([radius], dtype=F64), segments=torch.tensor([[4, 0]]),
-                        plane_normal=wall_n, plane_offset=wall_c, shape="disk3d",
-                        view=((-reach, reach), (-reach, reach), (-reach, reach))),
+        detector=Detector(kinds, 4, anchors, d),
+        n_slots=n_slots,
+        drawing=Drawing(
+            radii=torch.tensor([radius], dtype=F64),
+            segments=torch.tensor([[4, 0]]),
+            plane_normal=wall_n,
+            plane_offset=wall_c,
+            shape="disk3d",
+            view=((-reach, reach), (-reach, reach), (-reach, reach)),
+        ),
     )
     g = cfg.section("potential").number("gravity", 9.81, lo=0.0)
     m = torch.tensor([mass], dtype=F64)
-    params = Params(Inertia(m, torch.tensor([moments], dtype=F64)),
-                    SumPotential(Gravity(g, torch.tensor([0.0, 0.0, 1.0], dtype=F64), m, 4)), mu, e)
+    params = Params(
+        Inertia(m, torch.tensor([moments], dtype=F64)),
+        SumPotential(Gravity(g, torch.tensor([0.0, 0.0, 1.0], dtype=F64), m, 4)),
+        mu,
+        e,
+    )
     init = cfg.section("init")
     a_max = init.number("angle_max", 1.5, lo=0.0)
     phidot_max = init.number("precession_rate_max", 4.5, lo=0.0)
@@ -115,6 +139,3 @@ def gyro_points(com: torch.Tensor, phi, theta, psi, dphi, dtheta, dpsi) -> tuple
     x = torch.cat([c[:, None], c[:, None] + R.mT], dim=1)
     v = torch.cat([dc[:, None], dc[:, None] + Rdot.mT], dim=1)
     return x, v
-
-
-

@@ -46,15 +46,30 @@ def build_chain_pendulum(cfg: TaskConfig) -> Task:
     kinds = (SpherePlanes(ball, wall_n[wall], wall_c[wall], r[ball], torch.arange(n_slots), 1, dc=d),)
     reach = sum(lengths) + max(radii)
     system = System(
-        name=cfg.name, d=d, n_bodies=n, points_per_body=1, anchors=anchors,
-        constraints=make_constraints(n, d, anchors, dist=dist), detector=Detector(kinds, n, anchors, d),
+        name=cfg.name,
+        d=d,
+        n_bodies=n,
+        points_per_body=1,
+        anchors=anchors,
+        constraints=make_constraints(n, d, anchors, dist=dist),
+        detector=Detector(kinds, n, anchors, d),
         n_slots=n_slots,
-        drawing=Drawing(radii=r, segments=torch.stack([j, i], 1), plane_normal=wall_n, plane_offset=wall_c,
-                        shape="ball", view=((-reach, reach), (-reach, reach))),
+        drawing=Drawing(
+            radii=r,
+            segments=torch.stack([j, i], 1),
+            plane_normal=wall_n,
+            plane_offset=wall_c,
+            shape="ball",
+            view=((-reach, reach), (-reach, reach)),
+        ),
     )
     g = cfg.section("potential").number("gravity", 9.81, lo=0.0)
-    params = Params(Inertia(m, torch.zeros(n, 0, dtype=F64)),
-                    SumPotential(Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), m, 1)), mu, e)
+    params = Params(
+        Inertia(m, torch.zeros(n, 0, dtype=F64)),
+        SumPotential(Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), m, 1)),
+        mu,
+        e,
+    )
     init = cfg.section("init")
     q_lo, q_hi = init.numbers("angle_range", length=2, default=[0.0, math.pi])
     w_std = init.number("angular_velocity_std", 1.0, lo=0.0)
@@ -72,8 +87,9 @@ def build_chain_pendulum(cfg: TaskConfig) -> Task:
     return Task(cfg, system, params, sample)
 
 
-def chain_points(pivot: torch.Tensor, lengths: torch.Tensor, q: torch.Tensor, w: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def chain_points(
+    pivot: torch.Tensor, lengths: torch.Tensor, q: torch.Tensor, w: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Node positions and velocities (B, n, 2) of a chain from absolute link angles q (from the downward
     vertical) and rates w (B, n): link l (sin q, −cos q), its velocity l q̇ (cos q, sin q), summed."""
     link = lengths * torch.stack([torch.sin(q), -torch.cos(q)], -1).movedim(-1, 0)

@@ -44,23 +44,49 @@ def build_rope(cfg: TaskConfig) -> Task:
     b_idx = torch.arange(n - 1).repeat_interleave(2)
     s_idx = torch.arange(n).repeat_interleave(2)
     kinds = (
-        AngleLimits(prev[b_idx], nodes[b_idx], nodes[b_idx] + 1, torch.full((2 * (n - 1),), bend, dtype=F64),
-                    side.repeat(n - 1), b_idx),
-        StretchLimits(prev[s_idx], nodes[s_idx], torch.tensor([s_max, s_min], dtype=F64).repeat(n) * l0,
-                      side.repeat(n), n - 1 + s_idx),
+        AngleLimits(
+            prev[b_idx],
+            nodes[b_idx],
+            nodes[b_idx] + 1,
+            torch.full((2 * (n - 1),), bend, dtype=F64),
+            side.repeat(n - 1),
+            b_idx,
+        ),
+        StretchLimits(
+            prev[s_idx],
+            nodes[s_idx],
+            torch.tensor([s_max, s_min], dtype=F64).repeat(n) * l0,
+            side.repeat(n),
+            n - 1 + s_idx,
+        ),
     )
     system = System(
-        name=cfg.name, d=d, n_bodies=n, points_per_body=1, anchors=anchors,
-        constraints=make_constraints(n, d, anchors), detector=Detector(kinds, n, anchors, d), n_slots=n_slots,
-        drawing=Drawing(radii=torch.full((n,), 0.2 * l0, dtype=F64), segments=torch.stack([prev, nodes], 1),
-                        plane_normal=torch.zeros(0, d, dtype=F64), plane_offset=torch.zeros(0, dtype=F64),
-                        shape="ball", view=((-1.1 * n * l0, 1.1 * n * l0), (-1.1 * n * l0, 1.1 * n * l0))),
+        name=cfg.name,
+        d=d,
+        n_bodies=n,
+        points_per_body=1,
+        anchors=anchors,
+        constraints=make_constraints(n, d, anchors),
+        detector=Detector(kinds, n, anchors, d),
+        n_slots=n_slots,
+        drawing=Drawing(
+            radii=torch.full((n,), 0.2 * l0, dtype=F64),
+            segments=torch.stack([prev, nodes], 1),
+            plane_normal=torch.zeros(0, d, dtype=F64),
+            plane_offset=torch.zeros(0, dtype=F64),
+            shape="ball",
+            view=((-1.1 * n * l0, 1.1 * n * l0), (-1.1 * n * l0, 1.1 * n * l0)),
+        ),
     )
     g = cfg.section("potential").number("gravity", 9.81, lo=0.0)
     m = torch.full((n,), mass, dtype=F64)
     springs = Springs(prev, nodes, torch.full((n,), l0, dtype=F64), torch.full((n,), k, dtype=F64), anchors)
-    params = Params(Inertia(m, torch.zeros(n, 0, dtype=F64)),
-                    SumPotential(springs, Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), m, 1)), mu, e)
+    params = Params(
+        Inertia(m, torch.zeros(n, 0, dtype=F64)),
+        SumPotential(springs, Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), m, 1)),
+        mu,
+        e,
+    )
     init = cfg.section("init")
     q_lo, q_hi = init.numbers("angle_range", length=2, default=[0.0, math.pi])
     spread = init.number("bend_spread", bend, lo=0.0)
