@@ -18,8 +18,10 @@ No backpropagation through the iterations.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
+from diffcontact.solver import kernel
 from diffcontact.solver.ipm import IPMResult
 
 
@@ -64,44 +66,52 @@ def _arrow(x: torch.Tensor) -> torch.Tensor:
 
 
 def adjoint_solve(res: IPMResult, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Solve Kᵀ[u; v] = [g; 0] (module docstring); returns u: (B, n) and the rays' v: (B, K)."""
-    B, K = res.on.shape
+    """Solve Kᵀ[u; v] = [g; 0] (module docstring); returns u: (B, n) and the rays' v: (B, K).
+
+    Solved per element in the compiled kernel; where K is singular (a degenerate solution: a contact exactly
+    at a stick/slip or touch/separate switch) the dense system is solved by least squares instead.
+    """
+    arrays = [
+        np.ascontiguousarray(t.numpy())
+        for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l, g.detach().to(torch.float64))
+    ]
+    d = res.s_q.shape[-1]
+    u, v_l, ok = kernel.adjoint_batch(*arrays[:7], d, arrays[7])
+    u, v_l, ok = torch.from_numpy(u), torch.from_numpy(v_l), torch.from_numpy(ok)
+    if not ok.all():
+        u_ls, v_ls = _adjoint_lstsq(res, g, ~ok)
+        u[~ok], v_l[~ok] = u_ls, v_ls
+    return u, v_l
+
+
+def _adjoint_lstsq(res: IPMResult, g: torch.Tensor, sel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares adjoint for the selected (degenerate) elements, with the dense K built in torch."""
+    on, on_l_b = res.on[sel], res.on_l[sel]
+    B, K = on.shape
     d = res.s_q.shape[-1]
     n = K * d
-    soc = d > 1
-    m = K * (d + 1) if soc else K
-    N = n + m
+    N = n + K + K * d
     dt = res.P.dtype
-    on_l = res.on_l.to(dt)
-    on_q = res.on.to(dt)
+    on_l = on_l_b.to(dt)
+    on_q = on.to(dt) if d > 1 else torch.zeros_like(on_l)
     Kmat = torch.zeros(B, N, N, dtype=dt)
-    Kmat[:, :n, :n] = res.P
+    Kmat[:, :n, :n] = res.P[sel]
     k = torch.arange(K)
-    row_n = k * d  # the normal variable of each contact
-    ray = n + k  # the rays' multiplier rows/columns
-    # Gᵀ: −1 at (normal of k, ray k); −I on the cone block of k
+    row_n, ray = k * d, n + k
     Kmat[:, row_n, ray] = -on_l
-    # −L(λ)G = +λ_l at (ray k, normal k); L(s) = s_l; unused rays: identity row (dλ = 0)
-    Kmat[:, ray, row_n] = on_l * res.lam_l
-    Kmat[:, ray, ray] = on_l * res.s_l + (1.0 - on_l)
-    if soc:
-        i = torch.arange(d)
-        var = (k[:, None] * d + i[None, :]).reshape(-1)  # (K·d,)
-        mult = n + K + var
-        Kmat[:, var, mult] = -on_q.repeat_interleave(d, -1)
-        blk = k[:, None, None] * d
-        rows = (n + K + blk + i[None, :, None]).expand(K, d, d)
-        cols_v = (blk + i[None, None, :]).expand(K, d, d)
-        cols_m = (n + K + blk + i[None, None, :]).expand(K, d, d)
-        Lam = _arrow(res.lam_q) * on_q[..., None, None]
-        Sq = _arrow(res.s_q) * on_q[..., None, None] + (1.0 - on_q)[..., None, None] * torch.eye(d, dtype=dt)
-        Kmat[:, rows, cols_v] = Lam
-        Kmat[:, rows, cols_m] = Sq
+    Kmat[:, ray, row_n] = on_l * res.lam_l[sel]
+    Kmat[:, ray, ray] = on_l * res.s_l[sel] + (1.0 - on_l)
+    i = torch.arange(d)
+    var = (k[:, None] * d + i[None, :]).reshape(-1)
+    Kmat[:, var, n + K + var] = -on_q.repeat_interleave(d, -1)
+    blk = k[:, None, None] * d
+    rows = (n + K + blk + i[None, :, None]).expand(K, d, d)
+    cols_v = (blk + i[None, None, :]).expand(K, d, d)
+    cols_m = (n + K + blk + i[None, None, :]).expand(K, d, d)
+    eye = torch.eye(d, dtype=dt)
+    Kmat[:, rows, cols_v] = _arrow(res.lam_q[sel]) * on_q[..., None, None]
+    Kmat[:, rows, cols_m] = _arrow(res.s_q[sel]) * on_q[..., None, None] + (1.0 - on_q)[..., None, None] * eye
     rhs = torch.zeros(B, N, dtype=dt)
-    rhs[:, :n] = g
-    sol, info = torch.linalg.solve_ex(Kmat.mT, rhs)
-    bad = (info != 0) | ~torch.isfinite(sol).all(-1)
-    if bad.any():  # singular (degenerate solution): least squares instead
-        sol_ls = torch.linalg.lstsq(Kmat.mT[bad], rhs[bad].unsqueeze(-1)).solution.squeeze(-1)
-        sol[bad] = sol_ls
+    rhs[:, :n] = g[sel]
+    sol = torch.linalg.lstsq(Kmat.mT, rhs.unsqueeze(-1)).solution.squeeze(-1)
     return sol[:, :n], sol[:, n : n + K]

@@ -10,19 +10,18 @@ G z = (−z_n,i ; −z_i) and h = (−l_i ; 0).  Inactive contacts have no cones
 The method is Mehrotra's predictor–corrector with Nesterov–Todd scaling (as in CVXOPT's coneqp).  The
 reduced Newton matrix H = P + GᵀW⁻²G is P plus a d×d block per contact; it is positive definite even when P is
 singular, and one Cholesky factor serves both directions of an iteration.  The iterations run in a compiled
-kernel (``kernel.py``), one problem per batch element; this module wraps it and prepares, on demand, the
-factor of H at the solution that the implicit backward pass needs.
+kernel (``kernel.py``), one problem per batch element, followed by Newton steps on the exact optimality
+conditions that polish the solution to rounding accuracy.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from diffcontact.solver import cones, kernel
-from diffcontact.solver.linalg import SPDFactor
+from diffcontact.solver import kernel
 
 CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = (
     kernel.CONVERGED,
@@ -48,42 +47,6 @@ class IPMResult:
     lam_q: torch.Tensor
     on: torch.Tensor  # (B, K) bool, cones in use
     on_l: torch.Tensor  # (B, K) bool, rays in use
-    _factor: SPDFactor | None = field(default=None, repr=False)
-
-    @property
-    def w2_lin(self) -> torch.Tensor:
-        """(B, K) W⁻² of the rays (λ/s), 0 where unused."""
-        return self.on_l * self.lam_l / self.s_l
-
-    @property
-    def factor(self) -> SPDFactor:
-        """Factorisation of H = P + GᵀW⁻²G at the returned iterate (built on first use)."""
-        if self._factor is None:
-            self._factor = SPDFactor(newton_matrix(self))
-        return self._factor
-
-
-def newton_matrix(r: IPMResult) -> torch.Tensor:
-    """H = P + GᵀW⁻²G with the symmetric NT scaling of the returned (s, λ): (B, n, n).
-
-    The backward pass needs this symmetric scaling: the accumulated W of the iterations is only determined up
-    to a Lorentz transformation, which changes WᵀW in the rotational (tangent-to-the-cone) directions.
-    """
-    B, K = r.on.shape
-    d = r.s_q.shape[-1]
-    blocks = torch.zeros(B, K, d, d, dtype=r.P.dtype)
-    blocks[..., 0, 0] = r.w2_lin
-    if d > 1:
-        _, w_inv = cones.SocNTScaling(r.s_q, r.lam_q).matrices()
-        w2 = w_inv @ w_inv.mT
-        if d == 3:
-            w2 = _fix_rotation(w2, r.s_q, r.lam_q)
-        blocks = blocks + r.on[..., None, None] * w2
-    H = r.P.clone()
-    idx = torch.arange(K)
-    Hv = H.view(B, K, d, K, d)
-    Hv[:, idx, :, idx, :] += blocks.permute(1, 0, 2, 3)
-    return H
 
 
 def solve_ipm(
@@ -132,23 +95,3 @@ def solve_ipm(
         on=on,
         on_l=on_l,
     )
-
-
-def _fix_rotation(w2: torch.Tensor, s: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
-    """Set W⁻² in the direction that rotates the tangential part of a 3-D cone to its limit ‖λ_t‖/‖s_t‖.
-
-    At a sliding contact s and λ lie on opposite rays of the cone boundary and turn together, so the
-    linearised complementarity gives ds_rot = −(‖s_t‖/‖λ_t‖)·dλ_rot.  The NT scaling of an iterate that is not
-    exactly centred gets this ratio only roughly; it is the one entry the backward pass is sensitive to.
-    w2: (..., 3, 3); s, lam: (..., 3).
-    """
-    st = s[..., 1:]
-    u = st / st.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    v = torch.zeros_like(s)
-    v[..., 1] = -u[..., 1]
-    v[..., 2] = u[..., 0]
-    target = lam[..., 1:].norm(dim=-1) / st.norm(dim=-1).clamp_min(1e-300)
-    current = (v * (w2 @ v.unsqueeze(-1)).squeeze(-1)).sum(-1)
-    ok = (st.norm(dim=-1) > 0) & torch.isfinite(target)
-    delta = torch.where(ok, target - current, torch.zeros_like(target))
-    return w2 + delta[..., None, None] * v.unsqueeze(-1) * v.unsqueeze(-2)

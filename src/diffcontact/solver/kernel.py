@@ -22,7 +22,7 @@ CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
 _FM = {"contract", "arcp", "nsz", "afn", "reassoc"}
 
 
-@njit(cache=True, inline="always", fastmath=_FM)
+@njit(cache=True, inline="always", fastmath=_FM, error_model="numpy")
 def _det(x, k, d):
     r = 0.0
     for i in range(1, d):
@@ -31,7 +31,7 @@ def _det(x, k, d):
     return (x[k, 0] - r) * (x[k, 0] + r)
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _soc_max_step(x, dx, d):
     """Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.  x, dx: (d,)."""
     a = dx[0] * dx[0]
@@ -63,7 +63,7 @@ def _soc_max_step(x, dx, d):
     return best
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _nt_scaling(s, lam, d, W, Wi, v):
     """NT scaling of one cone: W, Wi (d, d) with W λ = W⁻¹ s (symmetric; W = η(2vvᵀ − J))."""
     rs = 0.0
@@ -96,7 +96,7 @@ def _nt_scaling(s, lam, d, W, Wi, v):
             Wi[i, j] = (2.0 * si * v[i] * sj * v[j] - jij) / eta
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _cholesky(H, L):
     n = H.shape[0]
     for j in range(n):
@@ -116,7 +116,7 @@ def _cholesky(H, L):
     return True
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _chol_solve(L, b, x):
     n = L.shape[0]
     for i in range(n):
@@ -131,7 +131,7 @@ def _chol_solve(L, b, x):
         x[i] = t / L[i, i]
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _factor(P, K, d, onl, on, w2l, w2q, H, L):
     """H = P + GᵀW⁻²G, then its Cholesky factor (with one diagonal shift on failure)."""
     n = K * d
@@ -155,7 +155,7 @@ def _factor(P, K, d, onl, on, w2l, w2q, H, L):
     return _cholesky(H, L)
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_out, sq_out, lq_out, buf):
     """One problem.  Returns (status, iterations, residual); writes the best iterate to the *_out arrays."""
     K = low.shape[0]
@@ -536,7 +536,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
     return status, iters, best_res
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _worst(s_l, s_q, onl, on, d, sign):
     """max over the cones of −(smallest eigenvalue of sign·s)."""
     worst = -np.inf
@@ -551,7 +551,7 @@ def _worst(s_l, s_q, onl, on, d, sign):
     return worst
 
 
-@njit(cache=True, inline="always", fastmath=_FM)
+@njit(cache=True, inline="always", fastmath=_FM, error_model="numpy")
 def _jprod(x, y, d, out):
     t = 0.0
     for i in range(d):
@@ -561,7 +561,7 @@ def _jprod(x, y, d, out):
         out[i] = x[0] * y[i] + y[0] * x[i]
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _newton(
     P,
     L,
@@ -654,7 +654,7 @@ def _newton(
                 dst_q[k, i] = 0.0
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q):
     """Exact KKT residuals (complementarity s∘λ = 0, not the central path); returns their max relative to
     max(1, ‖z‖∞), counting any violation of the cones as well."""
@@ -705,7 +705,7 @@ def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_
     return worst / zmax
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _gauss_solve(M, b):
     """Solve M x = b in place (b becomes x) by Gaussian elimination with partial pivoting; False if singular."""
     N = M.shape[0]
@@ -744,7 +744,7 @@ def _gauss_solve(M, b):
     return True
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
     """Newton steps on the exact optimality conditions from the interior-point solution.
 
@@ -849,7 +849,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
     return res
 
 
-@njit(cache=True, parallel=True, fastmath=_FM)
+@njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
 def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
     """Solve every batch element.  P: (B, n, n); c: (B, n); low, on, onl: (B, K).  float64 / bool."""
     B, K = low.shape
@@ -912,3 +912,62 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
             iters[b] = it
             res[b] = r
     return z, s_l, lam_l, s_q, lam_q, status, iters, res
+
+
+@njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
+def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, g):
+    """Solve Kᵀ[u; v] = [g; 0] per element, K the linearised optimality conditions (see ``implicit.py``).
+
+    Returns (u: (B, n), v_l: (B, K), ok: (B,) False where K is singular).
+    """
+    B, K = s_l.shape
+    n = K * d
+    N = n + K + K * d
+    u = np.zeros((B, n))
+    v_l = np.zeros((B, K))
+    ok = np.ones(B, dtype=np.bool_)
+    n_chunks = min(B, 64)
+    for ch in prange(n_chunks):
+        M = np.empty((N, N))
+        x = np.empty(N)
+        for b in range(ch, B, n_chunks):
+            for i in range(N):
+                x[i] = g[b, i] if i < n else 0.0
+                for j in range(N):
+                    M[i, j] = 0.0
+            # build Kᵀ directly: entry (row, col) of K goes to (col, row)
+            for i in range(n):
+                for j in range(n):
+                    M[j, i] = P[b, i, j]
+            for k in range(K):
+                row = n + k
+                if onl[b, k]:
+                    M[row, k * d] = -1.0  # K[k·d, row] = −1
+                    M[k * d, row] = lam_l[b, k]  # K[row, k·d] = λ
+                    M[row, row] = s_l[b, k]
+                else:
+                    M[row, row] = 1.0
+                for i in range(d):
+                    row = n + K + k * d + i
+                    if on[b, k] and d > 1:
+                        M[row, k * d + i] = -1.0
+                        # K rows of this cone: L(λ) on the z-block, L(s) on the multiplier block (transposed)
+                        if i == 0:
+                            for j in range(d):
+                                M[k * d + j, row] = lam_q[b, k, j]
+                                M[n + K + k * d + j, row] = s_q[b, k, j]
+                        else:
+                            M[k * d, row] = lam_q[b, k, i]
+                            M[k * d + i, row] = lam_q[b, k, 0]
+                            M[n + K + k * d, row] = s_q[b, k, i]
+                            M[n + K + k * d + i, row] = s_q[b, k, 0]
+                    else:
+                        M[row, row] = 1.0
+            if _gauss_solve(M, x):
+                for i in range(n):
+                    u[b, i] = x[i]
+                for k in range(K):
+                    v_l[b, k] = x[n + k]
+            else:
+                ok[b] = False
+    return u, v_l, ok
