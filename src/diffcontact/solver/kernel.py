@@ -654,6 +654,23 @@ def _newton(
                 dst_q[k, i] = 0.0
 
 
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
+def _weak_ray(s, lam):
+    """A ray whose multiplier is negligible next to its slack: inactive, or exactly at its switch."""
+    return lam <= 1e-6 * max(1.0, abs(s))
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
+def _weak_cone(s, lam, d):
+    """A cone whose multiplier is negligible next to its slack: sticking, or exactly at stick/slip."""
+    ns = 0.0
+    nl = 0.0
+    for i in range(d):
+        ns += s[i] * s[i]
+        nl += lam[i] * lam[i]
+    return math.sqrt(nl) <= 1e-6 * max(1.0, math.sqrt(ns))
+
+
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q):
     """Exact KKT residuals (complementarity s∘λ = 0, not the central path); returns their max relative to
@@ -745,13 +762,13 @@ def _gauss_solve(M, b):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
+def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, use_weak):
     """Newton steps on the exact optimality conditions from the interior-point solution.
 
     The interior-point iterate stays on the central path (s∘λ = τe); at a strictly complementary solution the
     exact conditions have a nonsingular Jacobian and Newton converges quadratically from it.  A step is kept
-    only if it lowers the exact KKT residual; degenerate solutions (singular Jacobian) are left as they are.
-    Returns the residual of the returned point.
+    only if it lowers the exact KKT residual.  Returns the exact KKT residual of the returned point and whether
+    the Jacobian was singular (a degenerate solution).
     """
     K = s_l.shape[0]
     n = K * d
@@ -776,6 +793,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
     for k in range(K):
         h_l[k] = -low[k] if onl[k] else 0.0
     res = _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q)
+    singular = False
     for _ in range(steps):
         if res <= 1e-14:
             break
@@ -789,16 +807,25 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
                 M[i, j] = P[i, j]
         for k in range(K):
             row = n + k
-            if onl[k]:
+            if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k])):
                 M[k * d, row] = -1.0
                 M[row, k * d] = lam_l[k]
                 M[row, row] = s_l[k]
                 rhs[row] = -comp_l[k] + lam_l[k] * r_l[k]
+            elif onl[k]:  # weakly active: taken as inactive, its multiplier driven to zero
+                M[k * d, row] = -1.0
+                M[row, row] = 1.0
+                rhs[row] = -lam_l[k]
             else:
                 M[row, row] = 1.0
+            weak = use_weak and on[k] and soc and _weak_cone(s_q[k], lam_q[k], d)
             for i in range(d):
                 row = n + K + k * d + i
-                if on[k] and soc:
+                if weak:
+                    M[k * d + i, row] = -1.0
+                    M[row, row] = 1.0
+                    rhs[row] = -lam_q[k, i]
+                elif on[k] and soc:
                     M[k * d + i, row] = -1.0
                     # L(λ) dz_k + L(s) dλ = −s∘λ + L(λ) r_q
                     lr = lam_q[k, 0] * r_q[k, i] if i > 0 else 0.0
@@ -817,6 +844,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
                 else:
                     M[row, row] = 1.0
         if not _gauss_solve(M, rhs):
+            singular = True
             break
         for i in range(n):
             zt[i] = z[i] + rhs[i]
@@ -846,7 +874,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
             for i in range(d):
                 s_q[k, i] = sqt[k, i]
                 lam_q[k, i] = lqt[k, i]
-    return res
+    return res, singular
 
 
 @njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
@@ -888,7 +916,10 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
                 buf,
             )
             if polish_steps > 0 and st <= INACCURATE:
-                r2 = _polish(
+                # a degenerate solution (a contact exactly at a switch) makes the exact conditions singular or
+                # ill-conditioned; it is then polished with its weakly active cones taken as inactive, kept only if
+                # that lowers the exact KKT residual further.  The residual reported is that of the returned point.
+                r2, singular = _polish(
                     P[b],
                     c[b],
                     low[b],
@@ -903,71 +934,106 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
                     polish_steps,
                     pM,
                     pbuf,
+                    False,
                 )
-                if r2 < r:
-                    r = r2
-                    if r <= tol:
-                        st = CONVERGED
+                if r2 > 1e-15:  # singular or slow: the contact may sit at a switch; try it as inactive
+                    r2, singular = _polish(
+                        P[b],
+                        c[b],
+                        low[b],
+                        on[b],
+                        onl[b],
+                        d,
+                        z[b],
+                        s_l[b],
+                        lam_l[b],
+                        s_q[b],
+                        lam_q[b],
+                        polish_steps,
+                        pM,
+                        pbuf,
+                        True,
+                    )
+                r = r2
+                if r <= tol:
+                    st = CONVERGED
+                elif st == CONVERGED:
+                    st = INACCURATE if r <= acc_tol else MAX_ITER
             status[b] = st
             iters[b] = it
             res[b] = r
     return z, s_l, lam_l, s_q, lam_q, status, iters, res
 
 
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _adjoint_one(P, s_l, lam_l, s_q, lam_q, on, onl, d, g, M, x, use_weak):
+    """Kᵀ[u; v] = [g; 0] for one element into x; with ``use_weak`` its weakly active cones (a contact exactly
+    at a switch) are taken as inactive, which gives a one-sided derivative.  False if K is singular."""
+    K = s_l.shape[0]
+    n = K * d
+    N = n + K + K * d
+    for i in range(N):
+        x[i] = g[i] if i < n else 0.0
+        for j in range(N):
+            M[i, j] = 0.0
+    # build Kᵀ directly: entry (row, col) of K goes to (col, row)
+    for i in range(n):
+        for j in range(n):
+            M[j, i] = P[i, j]
+    for k in range(K):
+        row = n + k
+        if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k])):
+            M[row, k * d] = -1.0  # K[k·d, row] = −1
+            M[k * d, row] = lam_l[k]  # K[row, k·d] = λ
+            M[row, row] = s_l[k]
+        else:
+            if onl[k]:
+                M[row, k * d] = -1.0
+            M[row, row] = 1.0
+        weak = use_weak and d > 1 and on[k] and _weak_cone(s_q[k], lam_q[k], d)
+        for i in range(d):
+            row = n + K + k * d + i
+            if on[k] and d > 1:
+                M[row, k * d + i] = -1.0
+            if on[k] and d > 1 and not weak:
+                # K rows of this cone: L(λ) on the z-block, L(s) on the multiplier block (transposed)
+                if i == 0:
+                    for j in range(d):
+                        M[k * d + j, row] = lam_q[k, j]
+                        M[n + K + k * d + j, row] = s_q[k, j]
+                else:
+                    M[k * d, row] = lam_q[k, i]
+                    M[k * d + i, row] = lam_q[k, 0]
+                    M[n + K + k * d, row] = s_q[k, i]
+                    M[n + K + k * d + i, row] = s_q[k, 0]
+            else:
+                M[row, row] = 1.0
+    return _gauss_solve(M, x)
+
+
 @njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
 def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, g):
     """Solve Kᵀ[u; v] = [g; 0] per element, K the linearised optimality conditions (see ``implicit.py``).
 
-    Returns (u: (B, n), v_l: (B, K), ok: (B,) False where K is singular).
+    Returns (u: (B, n), v_l: (B, K), ok: (B,) False where K is singular even with weak cones made inactive).
     """
     B, K = s_l.shape
     n = K * d
     N = n + K + K * d
     u = np.zeros((B, n))
     v_l = np.zeros((B, K))
-    ok = np.ones(B, dtype=np.bool_)
+    ok = np.zeros(B, dtype=np.bool_)
     n_chunks = min(B, 64)
     for ch in prange(n_chunks):
         M = np.empty((N, N))
         x = np.empty(N)
         for b in range(ch, B, n_chunks):
-            for i in range(N):
-                x[i] = g[b, i] if i < n else 0.0
-                for j in range(N):
-                    M[i, j] = 0.0
-            # build Kᵀ directly: entry (row, col) of K goes to (col, row)
-            for i in range(n):
-                for j in range(n):
-                    M[j, i] = P[b, i, j]
-            for k in range(K):
-                row = n + k
-                if onl[b, k]:
-                    M[row, k * d] = -1.0  # K[k·d, row] = −1
-                    M[k * d, row] = lam_l[b, k]  # K[row, k·d] = λ
-                    M[row, row] = s_l[b, k]
-                else:
-                    M[row, row] = 1.0
-                for i in range(d):
-                    row = n + K + k * d + i
-                    if on[b, k] and d > 1:
-                        M[row, k * d + i] = -1.0
-                        # K rows of this cone: L(λ) on the z-block, L(s) on the multiplier block (transposed)
-                        if i == 0:
-                            for j in range(d):
-                                M[k * d + j, row] = lam_q[b, k, j]
-                                M[n + K + k * d + j, row] = s_q[b, k, j]
-                        else:
-                            M[k * d, row] = lam_q[b, k, i]
-                            M[k * d + i, row] = lam_q[b, k, 0]
-                            M[n + K + k * d, row] = s_q[b, k, i]
-                            M[n + K + k * d + i, row] = s_q[b, k, 0]
-                    else:
-                        M[row, row] = 1.0
-            if _gauss_solve(M, x):
-                for i in range(n):
-                    u[b, i] = x[i]
-                for k in range(K):
-                    v_l[b, k] = x[n + k]
-            else:
-                ok[b] = False
+            for use_weak in (False, True):
+                if _adjoint_one(P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], d, g[b], M, x, use_weak):
+                    ok[b] = True
+                    for i in range(n):
+                        u[b, i] = x[i]
+                    for k in range(K):
+                        v_l[b, k] = x[n + k]
+                    break
     return u, v_l, ok
