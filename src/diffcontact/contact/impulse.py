@@ -34,15 +34,13 @@ class ContactModel:
     """CM (``reg = 0``) or CMr (``reg > 0``), with penetration compensation ``compensation`` × depth/dt.
 
     ``solver`` has the signature of :func:`diffcontact.solver.solve_cone_qp` (default: that function);
-    ``on_failure`` is passed to it ("raise" by default: no silent zero impulses). Restitution lower bounds
-    e·f_c,n below ``lower_floor`` (N·s, far below any physical impulse here) are treated as 0.
+    ``on_failure`` is passed to it ("raise" by default: no silent zero impulses).
     """
 
     reg: float = 0.0
     compensation: float = 0.125
     solver: Callable | None = None
     on_failure: str = "raise"
-    lower_floor: float = 1e-9
 
     def impulses(
         self,
@@ -70,9 +68,8 @@ class ContactModel:
         v_target = self.target_velocity(constraints, xs, contacts, dt)
         vC_c = vC + (A @ f_c[..., None])[..., 0]
         lower = e * f_c[:, ::dc]
-        # A compression impulse below the solver's accuracy is zero: f_c,n = ±1e-14 would give a lower bound
-        # that is numerical noise (and a degenerate apex problem for the solver), so such bounds are set to 0.
-        lower = torch.where(lower > self.lower_floor, lower, torch.zeros_like(lower))
+        # a separating contact's compression impulse is zero up to rounding (±1e-16): the bound must stay ≥ 0
+        lower = lower.clamp_min(0.0)
         f_r = solve(A_qp, vC_c - v_target, mu, lower, contacts.active, on_failure=self.on_failure)
         return (MhJt @ (f_c + f_r)[..., None]).reshape(Bp, P, d)
 

@@ -61,13 +61,15 @@ def solve_ipm(
     acceptable_tol: float = 1e-7,
     max_iter: int = 60,
     polish_steps: int = 3,
+    trace: np.ndarray | None = None,
 ) -> IPMResult:
     """Solve the batch in standard form (see module docstring).
 
     P: (B, n, n) symmetric PSD; c: (B, n); lower: (B, K) ≥ 0; on: (B, K) bool, contacts whose second-order
     cone is used (d ≥ 2); on_l: (B, K) bool, contacts whose ray z_n ≥ lower is used; float64.
     The data are expected scaled to order one (see ``problem.py``); ``tol`` bounds the KKT residual relative
-    to max(1, ‖z‖∞).
+    to max(1, ‖z‖∞).  ``trace`` (B, T, 4), if given, receives per iteration the primal and dual residuals, the
+    gap and the step taken (for diagnosis).
     """
     arrays = kernel.solve_batch(
         np.ascontiguousarray(P.numpy()),
@@ -80,6 +82,7 @@ def solve_ipm(
         acceptable_tol,
         max_iter,
         polish_steps,
+        trace if trace is not None else np.zeros((P.shape[0], 0, 4)),
     )
     z, s_l, lam_l, s_q, lam_q, status, iterations, residual = (torch.from_numpy(a) for a in arrays)
     return IPMResult(

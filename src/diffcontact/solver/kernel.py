@@ -156,7 +156,7 @@ def _factor(P, K, d, onl, on, w2l, w2q, H, L):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_out, sq_out, lq_out, buf):
+def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_out, sq_out, lq_out, buf, trace):
     """One problem.  Returns (status, iterations, residual); writes the best iterate to the *_out arrays."""
     K = low.shape[0]
     n = K * d
@@ -287,6 +287,11 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
         for i in range(n):
             dres = max(dres, abs(r_z[i]))
         res = max(max(pres, dres), gap) / zmax
+        if it < trace.shape[0]:
+            trace[it, 0] = pres
+            trace[it, 1] = dres
+            trace[it, 2] = gap
+            trace[it, 3] = step
         if not math.isfinite(res):
             break
         if res < best_res:
@@ -489,6 +494,10 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                         for i in range(d):
                             gap_aff += (lt_q[k, i] + a_aff * A_dsq[k, i]) * (lt_q[k, i] + a_aff * A_dlq[k, i])
                 sigma = min(max(gap_aff / max(gap, 1e-300), 0.0), 1.0) ** 3
+                if it > 0 and step < 0.5:
+                    # the last step was short: the iterate is badly centred, so centre more (a safeguard that
+                    # Mehrotra's heuristic lacks; it stops the stalls seen on ill-conditioned rope limits)
+                    sigma = max(sigma, 0.5)
                 tau = sigma * gap / degree
             else:
                 step = min(0.99 * alpha, 1.0)
@@ -878,7 +887,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
 
 
 @njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
-def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
+def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, trace):
     """Solve every batch element.  P: (B, n, n); c: (B, n); low, on, onl: (B, K).  float64 / bool."""
     B, K = low.shape
     n = K * d
@@ -914,8 +923,9 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
                 s_q[b],
                 lam_q[b],
                 buf,
+                trace[b],
             )
-            if polish_steps > 0 and st <= INACCURATE:
+            if polish_steps > 0 and st <= MAX_ITER:
                 # a degenerate solution (a contact exactly at a switch) makes the exact conditions singular or
                 # ill-conditioned; it is then polished with its weakly active cones taken as inactive, kept only if
                 # that lowers the exact KKT residual further.  The residual reported is that of the returned point.
@@ -957,8 +967,10 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps):
                 r = r2
                 if r <= tol:
                     st = CONVERGED
-                elif st == CONVERGED:
-                    st = INACCURATE if r <= acc_tol else MAX_ITER
+                elif r <= acc_tol:
+                    st = INACCURATE
+                else:
+                    st = MAX_ITER
             status[b] = st
             iters[b] = it
             res[b] = r

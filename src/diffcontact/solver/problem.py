@@ -157,7 +157,9 @@ def solve_cone_qp(
         sq = (S * q64.detach()).view(B, K, d)[..., 0]
         estimate = (torch.maximum(low64.detach() / sigma, -sq) * onf).amax(-1)
         c_abs = (S * D.detach() * q64.detach() * on_rows).abs().amax(-1)
-        gamma = torch.where(estimate > 0, estimate, c_abs)
+        # (never far below the data scale: a lower bound that is tiny next to the velocities would otherwise
+        # blow the linear term up)
+        gamma = torch.where(estimate > 0, torch.maximum(estimate, 1e-3 * c_abs), c_abs)
         gamma = torch.where(gamma > 0, gamma, torch.ones_like(gamma))
     T = S * D * on_rows  # (B, n); zero on inactive rows
     # A frictionless contact (μ = 0) has no cone: its tangential z is pinned to 0 by an identity block and only
