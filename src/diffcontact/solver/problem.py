@@ -161,6 +161,10 @@ def solve_cone_qp(
         # blow the linear term up)
         gamma = torch.where(estimate > 0, torch.maximum(estimate, 1e-3 * c_abs), c_abs)
         gamma = torch.where(gamma > 0, gamma, torch.ones_like(gamma))
+        # lower bounds below 1e-12 of the solution's scale (e·f_n of a contact that barely touched) are zero: a
+        # positive bound at the cone's apex only makes the problem degenerate
+        negligible = low64.detach() < 1e-12 * sigma * gamma[:, None]
+    low64 = torch.where(negligible, torch.zeros_like(low64), low64)
     T = S * D * on_rows  # (B, n); zero on inactive rows
     # A frictionless contact (μ = 0) has no cone: its tangential z is pinned to 0 by an identity block and only
     # the ray z_n ≥ lower remains.  That keeps the optimality conditions nonsingular (for the polishing Newton
