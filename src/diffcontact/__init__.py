@@ -1,16 +1,31 @@
 """diffcontact: learn the dynamics of colliding rigid bodies with a differentiable contact model."""
 
+from diffcontact.config import available_tasks, load_task
+from diffcontact.contact.impulse import ContactModel
 from diffcontact.errors import ConfigError, ContactSolverError, DatasetError
+from diffcontact.simulator import Simulator, simulator_for
 from diffcontact.solver import SolverInfo, Status, solve_cone_qp
+from diffcontact.state import Inertia, Params, State
+from diffcontact.systems.registry import BENCHMARK_TASKS, build_task
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "BENCHMARK_TASKS",
     "ConfigError",
+    "ContactModel",
     "ContactSolverError",
     "DatasetError",
+    "Inertia",
+    "Params",
+    "Simulator",
     "SolverInfo",
+    "State",
     "Status",
+    "available_tasks",
+    "build_task",
+    "load_task",
+    "simulator_for",
     "solve_cone_qp",
     "__version__",
 ]

@@ -886,6 +886,17 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
     return res, singular
 
 
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _polish_both(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
+    """Polish; if that does not reach rounding level (singular or slow: a contact may sit exactly at a switch),
+    polish again with the weakly active cones taken as inactive (kept only if it lowers the exact residual).
+    Returns the exact KKT residual of the returned point."""
+    r, singular = _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, False)
+    if r > 1e-15:
+        r, singular = _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, True)
+    return r
+
+
 @njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
 def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, trace):
     """Solve every batch element.  P: (B, n, n); c: (B, n); low, on, onl: (B, K).  float64 / bool."""
@@ -907,47 +918,32 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, tra
         pM = np.empty((N, N))
         pbuf = np.empty(N + 5 * K + 2 * n + 4 * K * d)
         for b in range(ch, B, n_chunks):
-            st, it, r = _solve_one(
-                P[b],
-                c[b],
-                low[b],
-                on[b],
-                onl[b],
-                d,
-                tol,
-                acc_tol,
-                max_iter,
-                z[b],
-                s_l[b],
-                lam_l[b],
-                s_q[b],
-                lam_q[b],
-                buf,
-                trace[b],
-            )
-            if polish_steps > 0 and st <= MAX_ITER:
-                # a degenerate solution (a contact exactly at a switch) makes the exact conditions singular or
-                # ill-conditioned; it is then polished with its weakly active cones taken as inactive, kept only if
-                # that lowers the exact KKT residual further.  The residual reported is that of the returned point.
-                r2, singular = _polish(
+            # With polishing, the interior-point method only needs to identify the solution's structure: it
+            # stops at 1e-8 and Newton's method on the exact conditions does the rest.  Where that fails (a
+            # degenerate solution) the method is run again to the full tolerance.
+            passes = 2 if polish_steps > 0 and tol < 1e-8 else 1
+            for attempt in range(passes):
+                tol_ipm = max(tol, 1e-8) if (polish_steps > 0 and attempt == 0) else tol
+                st, it, r = _solve_one(
                     P[b],
                     c[b],
                     low[b],
                     on[b],
                     onl[b],
                     d,
+                    tol_ipm,
+                    acc_tol,
+                    max_iter,
                     z[b],
                     s_l[b],
                     lam_l[b],
                     s_q[b],
                     lam_q[b],
-                    polish_steps,
-                    pM,
-                    pbuf,
-                    False,
+                    buf,
+                    trace[b],
                 )
-                if r2 > 1e-15:  # singular or slow: the contact may sit at a switch; try it as inactive
-                    r2, singular = _polish(
+                if polish_steps > 0 and st <= MAX_ITER:
+                    r = _polish_both(
                         P[b],
                         c[b],
                         low[b],
@@ -962,15 +958,15 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, tra
                         polish_steps,
                         pM,
                         pbuf,
-                        True,
                     )
-                r = r2
-                if r <= tol:
+                if st > MAX_ITER:  # numerical trouble or unbounded: reported as such
+                    break
+                # a first pass counts only if polishing reached rounding level: a larger residual hints at a
+                # degenerate solution, which the full-tolerance pass resolves better
+                if r <= (min(tol, 1e-13) if attempt < passes - 1 else tol):
                     st = CONVERGED
-                elif r <= acc_tol:
-                    st = INACCURATE
-                else:
-                    st = MAX_ITER
+                    break
+                st = INACCURATE if r <= acc_tol else MAX_ITER
             status[b] = st
             iters[b] = it
             res[b] = r
