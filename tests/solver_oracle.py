@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 
@@ -46,9 +48,11 @@ def clarabel_solve(A: np.ndarray, q: np.ndarray, mu: np.ndarray, lower: np.ndarr
     prob = cp.Problem(cp.Minimize(0.5 * cp.quad_form(f, cp.psd_wrap(A)) + q @ f), cons)
     for tol in (CLARABEL_TOL, 10 * CLARABEL_TOL, 100 * CLARABEL_TOL):  # Clarabel may stall at the tightest
         try:
-            prob.solve(
-                solver="CLARABEL", tol_gap_abs=tol, tol_gap_rel=tol, tol_feas=tol, tol_ktratio=1e-6, max_iter=500
-            )
+            with warnings.catch_warnings():  # "may be inaccurate": handled by the status check below
+                warnings.simplefilter("ignore", UserWarning)
+                prob.solve(
+                    solver="CLARABEL", tol_gap_abs=tol, tol_gap_rel=tol, tol_feas=tol, tol_ktratio=1e-6, max_iter=500
+                )
         except cp.error.SolverError:
             continue
         if prob.status == "optimal":
