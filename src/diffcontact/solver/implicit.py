@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from diffcontact.solver import kernel
+from diffcontact.solver import exact
 from diffcontact.solver.ipm import IPMResult
 
 
@@ -76,7 +76,7 @@ def adjoint_solve(res: IPMResult, g: torch.Tensor) -> tuple[torch.Tensor, torch.
         for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l, g.detach().to(torch.float64))
     ]
     d = res.s_q.shape[-1]
-    u, v_l, ok = kernel.adjoint_batch(*arrays[:7], d, arrays[7])
+    u, v_l, ok = exact.adjoint_batch(*arrays[:7], d, arrays[7])
     u, v_l, ok = torch.from_numpy(u), torch.from_numpy(v_l), torch.from_numpy(ok)
     if not ok.all():
         u_ls, v_ls = _adjoint_lstsq(res, g, ~ok)

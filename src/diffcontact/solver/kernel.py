@@ -7,7 +7,8 @@ tensor code pays a fixed cost per operation that dominates for problems this sma
 batch pays only for the arithmetic, and each element stops as soon as it has converged.
 
 Layout: n = K·d variables; every contact k has a ray (z_n ≥ lower, used when ``on_l[k]``) and, for d ≥ 2, a
-second-order cone ‖z_t‖ ≤ z_n (used when ``on[k]``).
+second-order cone ‖z_t‖ ≤ z_n (used when ``on[k]``).  The interior-point method runs to 1e-8; the solution is
+then polished by Newton's method on the exact conditions (``exact.py``).
 """
 
 from __future__ import annotations
@@ -17,18 +18,11 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from diffcontact.solver.exact import polish
+
 CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
 # fast-math without the no-NaN / no-inf assumptions: the kernel tests for both
 _FM = {"contract", "arcp", "nsz", "afn", "reassoc"}
-
-
-@njit(cache=True, inline="always", fastmath=_FM, error_model="numpy")
-def _det(x, k, d):
-    r = 0.0
-    for i in range(1, d):
-        r += x[k, i] * x[k, i]
-    r = math.sqrt(r)
-    return (x[k, 0] - r) * (x[k, 0] + r)
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
@@ -663,240 +657,6 @@ def _newton(
                 dst_q[k, i] = 0.0
 
 
-@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _weak_ray(s, lam):
-    """A ray whose multiplier is negligible next to its slack: inactive, or exactly at its switch."""
-    return lam <= 1e-6 * max(1.0, abs(s))
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _weak_cone(s, lam, d):
-    """A cone whose multiplier is negligible next to its slack: sticking, or exactly at stick/slip."""
-    ns = 0.0
-    nl = 0.0
-    for i in range(d):
-        ns += s[i] * s[i]
-        nl += lam[i] * lam[i]
-    return math.sqrt(nl) <= 1e-6 * max(1.0, math.sqrt(ns))
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q):
-    """Exact KKT residuals (complementarity s∘λ = 0, not the central path); returns their max relative to
-    max(1, ‖z‖∞), counting any violation of the cones as well."""
-    K = s_l.shape[0]
-    n = K * d
-    soc = d > 1
-    zmax = 1.0
-    worst = 0.0
-    for i in range(n):
-        t = c[i]
-        for j in range(n):
-            t += P[i, j] * z[j]
-        r_z[i] = t
-        zmax = max(zmax, abs(z[i]))
-    for k in range(K):
-        if onl[k]:
-            r_z[k * d] -= lam_l[k]
-            r_l[k] = -z[k * d] + s_l[k] - h_l[k]
-            comp_l[k] = s_l[k] * lam_l[k]
-            worst = max(worst, abs(r_l[k]), abs(comp_l[k]), -s_l[k], -lam_l[k])
-        else:
-            r_l[k] = 0.0
-            comp_l[k] = 0.0
-        if on[k] and soc:
-            rs = 0.0
-            rl = 0.0
-            dot = 0.0
-            for i in range(d):
-                r_z[k * d + i] -= lam_q[k, i]
-                r_q[k, i] = -z[k * d + i] + s_q[k, i]
-                worst = max(worst, abs(r_q[k, i]))
-                dot += s_q[k, i] * lam_q[k, i]
-                if i > 0:
-                    rs += s_q[k, i] * s_q[k, i]
-                    rl += lam_q[k, i] * lam_q[k, i]
-            comp_q[k, 0] = dot
-            for i in range(1, d):
-                comp_q[k, i] = s_q[k, 0] * lam_q[k, i] + lam_q[k, 0] * s_q[k, i]
-            for i in range(d):
-                worst = max(worst, abs(comp_q[k, i]))
-            worst = max(worst, math.sqrt(rs) - s_q[k, 0], math.sqrt(rl) - lam_q[k, 0])
-        else:
-            for i in range(d):
-                r_q[k, i] = 0.0
-                comp_q[k, i] = 0.0
-    for i in range(n):
-        worst = max(worst, abs(r_z[i]))
-    return worst / zmax
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _gauss_solve(M, b):
-    """Solve M x = b in place (b becomes x) by Gaussian elimination with partial pivoting; False if singular."""
-    N = M.shape[0]
-    scale = 0.0
-    for i in range(N):
-        for j in range(N):
-            scale = max(scale, abs(M[i, j]))
-    for col in range(N):
-        piv = col
-        best = abs(M[col, col])
-        for r in range(col + 1, N):
-            if abs(M[r, col]) > best:
-                best = abs(M[r, col])
-                piv = r
-        if not (best > 1e-13 * scale):
-            return False
-        if piv != col:
-            for j in range(N):
-                t = M[col, j]
-                M[col, j] = M[piv, j]
-                M[piv, j] = t
-            t = b[col]
-            b[col] = b[piv]
-            b[piv] = t
-        for r in range(col + 1, N):
-            f = M[r, col] / M[col, col]
-            if f != 0.0:
-                for j in range(col, N):
-                    M[r, j] -= f * M[col, j]
-                b[r] -= f * b[col]
-    for i in range(N - 1, -1, -1):
-        t = b[i]
-        for j in range(i + 1, N):
-            t -= M[i, j] * b[j]
-        b[i] = t / M[i, i]
-    return True
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, use_weak):
-    """Newton steps on the exact optimality conditions from the interior-point solution.
-
-    The interior-point iterate stays on the central path (s∘λ = τe); at a strictly complementary solution the
-    exact conditions have a nonsingular Jacobian and Newton converges quadratically from it.  A step is kept
-    only if it lowers the exact KKT residual.  Returns the exact KKT residual of the returned point and whether
-    the Jacobian was singular (a degenerate solution).
-    """
-    K = s_l.shape[0]
-    n = K * d
-    soc = d > 1
-    N = n + K + K * d
-    rhs = pbuf[:N]
-    o = N
-    h_l = pbuf[o : o + K]
-    r_l = pbuf[o + K : o + 2 * K]
-    comp_l = pbuf[o + 2 * K : o + 3 * K]
-    slt = pbuf[o + 3 * K : o + 4 * K]
-    llt = pbuf[o + 4 * K : o + 5 * K]
-    o += 5 * K
-    r_z = pbuf[o : o + n]
-    zt = pbuf[o + n : o + 2 * n]
-    o += 2 * n
-    kd = K * d
-    r_q = pbuf[o : o + kd].reshape(K, d)
-    comp_q = pbuf[o + kd : o + 2 * kd].reshape(K, d)
-    sqt = pbuf[o + 2 * kd : o + 3 * kd].reshape(K, d)
-    lqt = pbuf[o + 3 * kd : o + 4 * kd].reshape(K, d)
-    for k in range(K):
-        h_l[k] = -low[k] if onl[k] else 0.0
-    res = _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q)
-    singular = False
-    for _ in range(steps):
-        if res <= 1e-14:
-            break
-        for i in range(N):
-            rhs[i] = 0.0
-            for j in range(N):
-                M[i, j] = 0.0
-        for i in range(n):
-            rhs[i] = -r_z[i]
-            for j in range(n):
-                M[i, j] = P[i, j]
-        for k in range(K):
-            row = n + k
-            if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k])):
-                M[k * d, row] = -1.0
-                M[row, k * d] = lam_l[k]
-                M[row, row] = s_l[k]
-                rhs[row] = -comp_l[k] + lam_l[k] * r_l[k]
-            elif onl[k]:  # weakly active: taken as inactive, its multiplier driven to zero
-                M[k * d, row] = -1.0
-                M[row, row] = 1.0
-                rhs[row] = -lam_l[k]
-            else:
-                M[row, row] = 1.0
-            weak = use_weak and on[k] and soc and _weak_cone(s_q[k], lam_q[k], d)
-            for i in range(d):
-                row = n + K + k * d + i
-                if weak:
-                    M[k * d + i, row] = -1.0
-                    M[row, row] = 1.0
-                    rhs[row] = -lam_q[k, i]
-                elif on[k] and soc:
-                    M[k * d + i, row] = -1.0
-                    # L(λ) dz_k + L(s) dλ = −s∘λ + L(λ) r_q
-                    lr = lam_q[k, 0] * r_q[k, i] if i > 0 else 0.0
-                    if i == 0:
-                        for j in range(d):
-                            M[row, k * d + j] = lam_q[k, j]
-                            M[row, n + K + k * d + j] = s_q[k, j]
-                            lr += lam_q[k, j] * r_q[k, j]
-                    else:
-                        M[row, k * d] = lam_q[k, i]
-                        M[row, k * d + i] = lam_q[k, 0]
-                        M[row, n + K + k * d] = s_q[k, i]
-                        M[row, n + K + k * d + i] = s_q[k, 0]
-                        lr += lam_q[k, i] * r_q[k, 0]
-                    rhs[row] = -comp_q[k, i] + lr
-                else:
-                    M[row, row] = 1.0
-        if not _gauss_solve(M, rhs):
-            singular = True
-            break
-        for i in range(n):
-            zt[i] = z[i] + rhs[i]
-        for k in range(K):
-            if onl[k]:
-                llt[k] = lam_l[k] + rhs[n + k]
-                slt[k] = s_l[k] - r_l[k] + rhs[k * d]
-            else:
-                llt[k] = lam_l[k]
-                slt[k] = s_l[k]
-            for i in range(d):
-                if on[k] and soc:
-                    lqt[k, i] = lam_q[k, i] + rhs[n + K + k * d + i]
-                    sqt[k, i] = s_q[k, i] - r_q[k, i] + rhs[k * d + i]
-                else:
-                    lqt[k, i] = lam_q[k, i]
-                    sqt[k, i] = s_q[k, i]
-        new = _kkt_residual(P, c, h_l, on, onl, d, zt, slt, llt, sqt, lqt, r_z, r_l, r_q, comp_l, comp_q)
-        if not (new < res):
-            break
-        res = new
-        for i in range(n):
-            z[i] = zt[i]
-        for k in range(K):
-            s_l[k] = slt[k]
-            lam_l[k] = llt[k]
-            for i in range(d):
-                s_q[k, i] = sqt[k, i]
-                lam_q[k, i] = lqt[k, i]
-    return res, singular
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _polish_both(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
-    """Polish; if that does not reach rounding level (singular or slow: a contact may sit exactly at a switch),
-    polish again with the weakly active cones taken as inactive (kept only if it lowers the exact residual).
-    Returns the exact KKT residual of the returned point."""
-    r, singular = _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, False)
-    if r > 1e-15:
-        r, singular = _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, True)
-    return r
-
-
 @njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
 def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, trace):
     """Solve every batch element.  P: (B, n, n); c: (B, n); low, on, onl: (B, K).  float64 / bool."""
@@ -943,7 +703,7 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, tra
                     trace[b],
                 )
                 if polish_steps > 0 and st <= MAX_ITER:
-                    r = _polish_both(
+                    r = polish(
                         P[b],
                         c[b],
                         low[b],
@@ -971,77 +731,3 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, tra
             iters[b] = it
             res[b] = r
     return z, s_l, lam_l, s_q, lam_q, status, iters, res
-
-
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _adjoint_one(P, s_l, lam_l, s_q, lam_q, on, onl, d, g, M, x, use_weak):
-    """Kᵀ[u; v] = [g; 0] for one element into x; with ``use_weak`` its weakly active cones (a contact exactly
-    at a switch) are taken as inactive, which gives a one-sided derivative.  False if K is singular."""
-    K = s_l.shape[0]
-    n = K * d
-    N = n + K + K * d
-    for i in range(N):
-        x[i] = g[i] if i < n else 0.0
-        for j in range(N):
-            M[i, j] = 0.0
-    # build Kᵀ directly: entry (row, col) of K goes to (col, row)
-    for i in range(n):
-        for j in range(n):
-            M[j, i] = P[i, j]
-    for k in range(K):
-        row = n + k
-        if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k])):
-            M[row, k * d] = -1.0  # K[k·d, row] = −1
-            M[k * d, row] = lam_l[k]  # K[row, k·d] = λ
-            M[row, row] = s_l[k]
-        else:
-            if onl[k]:
-                M[row, k * d] = -1.0
-            M[row, row] = 1.0
-        weak = use_weak and d > 1 and on[k] and _weak_cone(s_q[k], lam_q[k], d)
-        for i in range(d):
-            row = n + K + k * d + i
-            if on[k] and d > 1:
-                M[row, k * d + i] = -1.0
-            if on[k] and d > 1 and not weak:
-                # K rows of this cone: L(λ) on the z-block, L(s) on the multiplier block (transposed)
-                if i == 0:
-                    for j in range(d):
-                        M[k * d + j, row] = lam_q[k, j]
-                        M[n + K + k * d + j, row] = s_q[k, j]
-                else:
-                    M[k * d, row] = lam_q[k, i]
-                    M[k * d + i, row] = lam_q[k, 0]
-                    M[n + K + k * d, row] = s_q[k, i]
-                    M[n + K + k * d + i, row] = s_q[k, 0]
-            else:
-                M[row, row] = 1.0
-    return _gauss_solve(M, x)
-
-
-@njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
-def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, g):
-    """Solve Kᵀ[u; v] = [g; 0] per element, K the linearised optimality conditions (see ``implicit.py``).
-
-    Returns (u: (B, n), v_l: (B, K), ok: (B,) False where K is singular even with weak cones made inactive).
-    """
-    B, K = s_l.shape
-    n = K * d
-    N = n + K + K * d
-    u = np.zeros((B, n))
-    v_l = np.zeros((B, K))
-    ok = np.zeros(B, dtype=np.bool_)
-    n_chunks = min(B, 64)
-    for ch in prange(n_chunks):
-        M = np.empty((N, N))
-        x = np.empty(N)
-        for b in range(ch, B, n_chunks):
-            for use_weak in (False, True):
-                if _adjoint_one(P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], d, g[b], M, x, use_weak):
-                    ok[b] = True
-                    for i in range(n):
-                        u[b, i] = x[i]
-                    for k in range(K):
-                        v_l[b, k] = x[n + k]
-                    break
-    return u, v_l, ok
