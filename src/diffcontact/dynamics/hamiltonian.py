@@ -1,7 +1,8 @@
 """Constrained Hamiltonian dynamics in Cartesian coordinates (x, p) (paper Suppl. B; Finzi et al. 2020).
 
 H(x, p) = ½ pᵀM⁻¹p + V(x); ż = P(J∇H) with J = [[0, I], [−I, 0]], Ψ = (Φ(x), J_E(x) M⁻¹ p) and the
-projection P(Y) = Y − J DΨ (DΨᵀ J DΨ)⁻¹ DΨᵀ Y. ∇H comes from autograd, so a learned V fits unchanged.
+projection P(Y) = Y − J DΨ (DΨᵀ J DΨ)⁻¹ DΨᵀ Y. ∂H/∂p = M⁻¹p in closed form and ∂H/∂x = ∇V by autograd, so a
+learned V fits unchanged.
 """
 
 from __future__ import annotations
@@ -10,13 +11,8 @@ import torch
 
 from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import apply_blocks, body_blocks
+from diffcontact.dynamics.lagrangian import potential_force
 from diffcontact.state import Params
-
-
-def hamiltonian(params: Params, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """H = ½ pᵀM⁻¹p + V(x): x, p (B, P, d) -> (B,) in J."""
-    _, Minv = body_blocks(params.inertia)
-    return 0.5 * (p * apply_blocks(Minv, p)).flatten(1).sum(-1) + params.potential(x)
 
 
 def hamiltonian_field(
@@ -24,18 +20,16 @@ def hamiltonian_field(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The projected Hamiltonian vector field (ẋ, ṗ), each (B, P, d)."""
     B, P, d = x.shape
-    outer = torch.is_grad_enabled()
-    with torch.enable_grad():
-        xg = x if x.requires_grad else x.detach().requires_grad_(True)
-        pg = p if p.requires_grad else p.detach().requires_grad_(True)
-        H = hamiltonian(params, xg, pg)
-        dHdx, dHdp = torch.autograd.grad(H.sum(), (xg, pg), create_graph=outer, allow_unused=True)
-    dHdx = torch.zeros_like(x) if dHdx is None else dHdx
+    # ∂H/∂p = M⁻¹p and ∂H/∂x = ∇V(x) taken separately: an autograd gradient of H itself with respect to the
+    # state would be the total derivative, which after a contact step (p depends on x through the impulse) is not
+    # the partial one the field needs.
+    _, Minv = body_blocks(params.inertia)
+    dHdp = apply_blocks(Minv, p)
+    dHdx = -potential_force(params.potential, x)
     Y = torch.cat([dHdp.reshape(B, -1), -dHdx.reshape(B, -1)], dim=-1)  # J∇H, (B, 2D)
     if constraints.count == 0:
         return Y[:, : P * d].reshape(B, P, d), Y[:, P * d :].reshape(B, P, d)
-    _, Minv = body_blocks(params.inertia)
-    v = apply_blocks(Minv, p)
+    v = dHdp
     JE = constraints.jac(x)  # (B, E, D)
     dPhidot_dx = constraints.jac_dot(x, v)  # ∂(J_E M⁻¹p)/∂x
     MinvJt = apply_blocks(Minv, JE.mT.reshape(B, P, d, -1)).reshape(B, P * d, -1)

@@ -1,0 +1,73 @@
+"""The four models of the paper: the Simulator of a task with learnable Params.
+
+CM-CD-CLNN / CM-CD-CHNN use the exact contact model, CMr-CD-CLNN / CMr-CD-CHNN the regularised one (A + 0.01 I);
+CLNN integrates the constrained Lagrangian dynamics in (x, v), CHNN the constrained Hamiltonian dynamics in (x, p).
+The structure (bodies, constraints, contact candidates and geometry, dt, integrator) is the task's own: the
+ground truth and the model are the same code.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from diffcontact.contact.impulse import ContactModel
+from diffcontact.errors import ConfigError
+from diffcontact.models.params import LearnedParams
+from diffcontact.simulator import Simulator
+from diffcontact.state import State
+
+CMR_REG = 0.01
+MODEL_NAMES = {
+    "CM-CD-CLNN": ("lagrangian", 0.0),
+    "CM-CD-CHNN": ("hamiltonian", 0.0),
+    "CMr-CD-CLNN": ("lagrangian", CMR_REG),
+    "CMr-CD-CHNN": ("hamiltonian", CMR_REG),
+}
+
+
+class ContactModelNet(nn.Module):
+    """A learnable simulator: ``forward(x0, v0, frames)`` -> predicted x, v (B, frames, P, d) from frame 0."""
+
+    def __init__(self, simulator: Simulator, params: LearnedParams, dt: float, name: str):
+        super().__init__()
+        self.simulator, self.params, self.dt, self.name = simulator, params, dt, name
+
+    def forward(self, x0: torch.Tensor, v0: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+        xs, vs, _ = self.simulator.rollout(State(x0, v0), self.params(), self.dt, frames)
+        return xs, vs
+
+
+def build_model(
+    task,
+    name: str = "CM-CD-CLNN",
+    *,
+    mu_transform: str = "relu",
+    e_transform: str = "hardsigmoid",
+    hidden: int = 256,
+    layers: int = 3,
+    seed: int = 0,
+    on_failure: str = "raise",
+) -> ContactModelNet:
+    """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters."""
+    if name not in MODEL_NAMES:
+        raise ConfigError(f"model = {name!r} is not one of {list(MODEL_NAMES)}")
+    dynamics, reg = MODEL_NAMES[name]
+    system = task.system
+    comp = task.config.section("contact").number("compensation", 0.125, lo=0.0, hi=1.0)
+    sim = Simulator(system, dynamics, ContactModel(reg=reg, compensation=comp, on_failure=on_failure))
+    homogeneous = len(task.config.section("contact").numbers("mu")) == 1
+    params = LearnedParams(
+        system.n_bodies,
+        task.params.inertia.moments.shape[-1],
+        system.n_points,
+        system.d,
+        system.n_slots,
+        homogeneous=homogeneous,
+        mu_transform=mu_transform,
+        e_transform=e_transform,
+        hidden=hidden,
+        layers=layers,
+        seed=seed,
+    )
+    return ContactModelNet(sim, params, task.dt, name)

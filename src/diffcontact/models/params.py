@@ -1,0 +1,97 @@
+"""Learnable physical parameters (paper Sec. 4 and Suppl. D): inertia, potential, friction and restitution.
+
+Structure stays known (bodies, constraints, contact geometry); the values are learned:
+- inertia: masses and per-axis moments per unit mass through exp (positive by construction), 0.1·N(0, 1) init;
+- potential: an MLP over all positions (3 hidden layers of 256, Softplus, orthogonal weights), as published;
+- μ = ReLU(raw) (raw ~ U[0, 1)) and e = hardsigmoid(raw) (raw ~ N(0, 1)), as published, or the smooth
+  alternatives softplus / sigmoid, which never stop the gradient; one pair for homogeneous tasks (a single
+  configured value), one per contact slot otherwise.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from diffcontact.errors import ConfigError
+from diffcontact.state import Inertia, Params
+
+MU_TRANSFORMS = {"relu": torch.relu, "softplus": nn.functional.softplus}
+E_TRANSFORMS = {"hardsigmoid": nn.functional.hardsigmoid, "sigmoid": torch.sigmoid}
+
+
+class MLPPotential(nn.Module):
+    """V(x): positions (B, P, d) -> (B,); an MLP over the flattened positions with Softplus activations."""
+
+    def __init__(self, n_inputs: int, hidden: int = 256, layers: int = 3, generator: torch.Generator | None = None):
+        super().__init__()
+        sizes = [n_inputs] + [hidden] * layers
+        mods: list[nn.Module] = []
+        for a, b in zip(sizes[:-1], sizes[1:]):
+            mods += [nn.Linear(a, b), nn.Softplus()]
+        mods.append(nn.Linear(sizes[-1], 1))
+        self.net = nn.Sequential(*mods)
+        for m in self.net:
+            if isinstance(m, nn.Linear):
+                nn.init.orthogonal_(m.weight, generator=generator)
+                bound = 1.0 / m.weight.shape[1] ** 0.5  # torch's default bias init, made reproducible
+                nn.init.uniform_(m.bias, -bound, bound, generator=generator)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x.flatten(1)).squeeze(-1)
+
+
+class LearnedParams(nn.Module):
+    """Learnable :class:`~diffcontact.state.Params` for a system with ``n_bodies`` bodies.
+
+    n_moments: moments per body (0 for point masses, d for extended bodies); n_points·d: potential input size;
+    n_slots: contact slots; homogeneous: one (μ, e) for all slots.  ``forward()`` returns Params.
+    """
+
+    def __init__(
+        self,
+        n_bodies: int,
+        n_moments: int,
+        n_points: int,
+        d: int,
+        n_slots: int,
+        *,
+        homogeneous: bool,
+        mu_transform: str = "relu",
+        e_transform: str = "hardsigmoid",
+        hidden: int = 256,
+        layers: int = 3,
+        seed: int = 0,
+        dtype: torch.dtype = torch.float64,
+    ):
+        super().__init__()
+        if mu_transform not in MU_TRANSFORMS:
+            raise ConfigError(f"mu_transform = {mu_transform!r} is not one of {list(MU_TRANSFORMS)}")
+        if e_transform not in E_TRANSFORMS:
+            raise ConfigError(f"e_transform = {e_transform!r} is not one of {list(E_TRANSFORMS)}")
+        gen = torch.Generator().manual_seed(seed)
+        self.n_slots, self.homogeneous = n_slots, homogeneous
+        self.mu_transform, self.e_transform = mu_transform, e_transform
+        n_coef = 1 if homogeneous else n_slots
+        self.log_mass = nn.Parameter(0.1 * torch.randn(n_bodies, generator=gen, dtype=dtype))
+        self.log_moments = nn.Parameter(0.1 * torch.randn(n_bodies, n_moments, generator=gen, dtype=dtype))
+        self.mu_raw = nn.Parameter(torch.rand(n_coef, generator=gen, dtype=dtype))
+        self.e_raw = nn.Parameter(torch.randn(n_coef, generator=gen, dtype=dtype))
+        self.potential = MLPPotential(n_points * d, hidden, layers, generator=gen).to(dtype)
+
+    @property
+    def mu(self) -> torch.Tensor:
+        """(n_slots,) friction coefficients ≥ 0 (a broadcast view when homogeneous)."""
+        return MU_TRANSFORMS[self.mu_transform](self.mu_raw).expand(self.n_slots)
+
+    @property
+    def e(self) -> torch.Tensor:
+        """(n_slots,) coefficients of restitution in [0, 1]."""
+        return E_TRANSFORMS[self.e_transform](self.e_raw).expand(self.n_slots)
+
+    @property
+    def inertia(self) -> Inertia:
+        return Inertia(masses=self.log_mass.exp(), moments=self.log_moments.exp())
+
+    def forward(self) -> Params:
+        return Params(inertia=self.inertia, potential=self.potential, mu=self.mu, e=self.e)
