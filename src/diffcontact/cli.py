@@ -58,6 +58,42 @@ def simulate(
     typer.echo(f"wrote {out}: {meta['n']} trajectories x {meta['frames']} frames of {meta['task']}")
 
 
+@app.command("generate")
+def generate(
+    task: str = typer.Argument("", help="Task name (configs/tasks/NAME.toml) or path; omit with --all."),
+    all_tasks: bool = typer.Option(False, "--all", help="Generate the 8 benchmark tasks."),
+    out: str = typer.Option("data", "--out", help="Root folder; each task goes to OUT/TASK/."),
+    noise: float = typer.Option(0.0, "--noise", help="Std of Gaussian noise on the chunk frames (0 = none)."),
+    n_train: int = typer.Option(800, "--n-train", help="Training trajectories."),
+    n_val: int = typer.Option(100, "--n-val", help="Validation trajectories."),
+    n_test: int = typer.Option(100, "--n-test", help="Test trajectories."),
+    seeds: tuple[int, int, int] = typer.Option((0, 1, 2), "--seeds", help="Seeds of train, val and test."),
+    force: bool = typer.Option(False, "--force", help="Regenerate even if an identical valid dataset exists."),
+    progress: bool = typer.Option(True, help="Show a progress bar."),
+) -> None:
+    """Generate train/val/test trajectories and 5-frame chunks of a task (CM, float64), with checksums."""
+    import time
+
+    from diffcontact.data.generate import generate_dataset
+    from diffcontact.errors import ConfigError
+    from diffcontact.systems.registry import BENCHMARK_TASKS
+
+    if all_tasks == bool(task):
+        raise typer.BadParameter("give either a TASK or --all")
+    t0 = time.perf_counter()
+    names = list(BENCHMARK_TASKS) if all_tasks else [task]
+    try:
+        for name in names:
+            generate_dataset(
+                name, out, n_train=n_train, n_val=n_val, n_test=n_test, seeds=seeds, noise=noise,
+                force=force, progress=progress, echo=typer.echo,
+            )  # fmt: skip
+    except ConfigError as err:
+        typer.echo(f"ConfigError: {err}", err=True)
+        raise typer.Exit(2) from err
+    typer.echo(f"done: {len(names)} task(s) in {time.perf_counter() - t0:.1f} s -> {out}")
+
+
 @bench_app.command("simulate")
 def bench_simulate(
     tasks: list[str] = typer.Option([], "--task", "-t", help="Tasks (default: the 8 benchmark tasks)."),

@@ -1,0 +1,204 @@
+"""Dataset storage: one folder per task, one ``.npz`` per split, a ``meta.json`` with checksums.
+
+Layout of ``<root>/<task>/``:
+- ``train.npz``, ``val.npz``, ``test.npz`` with arrays (N trajectories, T frames, L chunk frames, P points, d dims)
+  x, v (N, T, P, d) float64 in m and m/s; contact (N, T) bool (an impulse was applied at that frame);
+  t (T,) in s; chunk_start (N,) int64; chunk_x, chunk_v (N, L, P, d) (with noise, if any);
+  chunk_collision (N,) bool;
+- ``meta.json``: the generation request (task config, sizes, seeds, noise, ...), versions, and per split the file's
+  SHA-256, array shapes and dtypes, collision counts and time taken. It is written last, so a folder without it
+  is an incomplete dataset.
+
+Every file is written to a temporary name in the same folder and renamed. Loading checks the checksum, the
+recorded shapes and the task config, and raises :class:`DatasetError` on any mismatch.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from diffcontact.config import TaskConfig, load_task
+from diffcontact.errors import ConfigError, DatasetError
+
+FORMAT = 1
+META = "meta.json"
+SPLITS = ("train", "val", "test")
+ARRAYS = ("x", "v", "contact", "t", "chunk_start", "chunk_x", "chunk_v", "chunk_collision")
+TMP_PREFIX = ".tmp-"
+
+
+@dataclass(frozen=True)
+class Split:
+    """One split as torch tensors (shapes as in the module docstring); ``dt`` in s."""
+
+    name: str
+    task: str
+    dt: float
+    x: torch.Tensor
+    v: torch.Tensor
+    contact: torch.Tensor
+    t: torch.Tensor
+    chunk_start: torch.Tensor
+    chunk_x: torch.Tensor
+    chunk_v: torch.Tensor
+    chunk_collision: torch.Tensor
+
+    @property
+    def n(self) -> int:
+        return int(self.x.shape[0])
+
+    @property
+    def chunk_t(self) -> torch.Tensor:
+        """Times of the chunk frames relative to the chunk start: (L,) in s."""
+        return self.t[: self.chunk_x.shape[1]] - self.t[0]
+
+
+def sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a file."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _atomic(path: Path, write) -> None:
+    """Write through ``write(fh)`` into a temporary file next to ``path``, fsync, then rename onto ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def save_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> str:
+    """Write arrays to ``path`` (.npz, uncompressed) atomically; returns its SHA-256."""
+    path = Path(path)
+    _atomic(path, lambda fh: np.savez(fh, **arrays))
+    return sha256(path)
+
+
+def save_meta(folder: str | Path, meta: dict[str, Any]) -> None:
+    """Write ``meta.json`` atomically."""
+    text = json.dumps(meta, indent=2, sort_keys=True) + "\n"
+    _atomic(Path(folder) / META, lambda fh: fh.write(text.encode()))
+
+
+def remove_stale(folder: str | Path) -> None:
+    """Invalidate a dataset before regenerating it: delete ``meta.json`` and leftover temporary files."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    (folder / META).unlink(missing_ok=True)
+    for tmp in folder.glob(f"{TMP_PREFIX}*"):
+        tmp.unlink(missing_ok=True)
+
+
+def load_meta(folder: str | Path) -> dict[str, Any]:
+    """The parsed ``meta.json`` of a dataset folder (DatasetError if missing, unreadable or of another format)."""
+    path = Path(folder) / META
+    if not path.is_file():
+        raise DatasetError(
+            f"{path} is missing: {folder} is not a complete dataset (never generated, or generation was "
+            "interrupted); run `diffcontact generate`"
+        )
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise DatasetError(f"{path} is not valid JSON: {err}") from err
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise DatasetError(f"{path}: format {meta.get('format') if isinstance(meta, dict) else None!r} != {FORMAT}")
+    return meta
+
+
+def config_json(config: TaskConfig) -> Any:
+    """The task config as recorded in the metadata (the parsed TOML through a JSON round trip)."""
+    return json.loads(json.dumps(config.raw, sort_keys=True, default=str))
+
+
+def check_config(meta: dict[str, Any], config: TaskConfig | None, folder: str | Path) -> None:
+    """DatasetError unless the dataset was generated from ``config`` (default: the current task file)."""
+    name = meta["request"]["task"]
+    if config is None:
+        try:
+            config = load_task(name)
+        except ConfigError as err:
+            raise DatasetError(f"{folder}: cannot verify the config of task {name!r}: {err}") from err
+    if config_json(config) != meta["request"]["config"]:
+        raise DatasetError(
+            f"{folder} was generated from a different config of task {name!r} than the current one "
+            f"({config.name}); regenerate it with `diffcontact generate {config.name}`"
+        )
+
+
+def verify_file(folder: str | Path, split: str, meta: dict[str, Any]) -> Path:
+    """Check that the split's file exists and has the recorded SHA-256; returns its path."""
+    if split not in SPLITS:
+        raise DatasetError(f"split = {split!r} is not one of {list(SPLITS)}")
+    info = meta["splits"].get(split)
+    if info is None:
+        raise DatasetError(f"{folder}: split {split!r} is not recorded in {META}")
+    path = Path(folder) / info["file"]
+    if not path.is_file():
+        raise DatasetError(f"{path} is missing")
+    digest = sha256(path)
+    if digest != info["sha256"]:
+        raise DatasetError(
+            f"{path}: SHA-256 {digest[:16]}… does not match the recorded {info['sha256'][:16]}…: the file was "
+            "modified, truncated or replaced; regenerate the dataset"
+        )
+    return path
+
+
+def verify_dataset(folder: str | Path, config: TaskConfig | None = None) -> dict[str, Any]:
+    """Check metadata, config and every split's checksum; returns the metadata."""
+    meta = load_meta(folder)
+    check_config(meta, config, folder)
+    for split in meta["splits"]:
+        verify_file(folder, split, meta)
+    return meta
+
+
+def load_split(folder: str | Path, split: str, config: TaskConfig | None = None, dtype=None) -> Split:
+    """Load a verified split (checksum, config, array names, shapes, dtypes) as tensors, cast to ``dtype``
+    (floating arrays only; default: as stored, float64)."""
+    meta = load_meta(folder)
+    check_config(meta, config, folder)
+    path = verify_file(folder, split, meta)
+    info = meta["splits"][split]
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in ARRAYS}
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as err:
+        raise DatasetError(f"{path} is corrupt or incomplete: {err}") from err
+    for key, arr in arrays.items():
+        want = info["arrays"][key]
+        if list(arr.shape) != want["shape"] or str(arr.dtype) != want["dtype"]:
+            raise DatasetError(
+                f"{path}: array {key} is {arr.dtype}{list(arr.shape)}, recorded {want['dtype']}{want['shape']}"
+            )
+    tensors = {k: torch.from_numpy(a) for k, a in arrays.items()}
+    if dtype is not None:
+        tensors = {k: t.to(dtype) if t.is_floating_point() else t for k, t in tensors.items()}
+    return Split(name=split, task=meta["request"]["task"], dt=float(meta["request"]["dt"]), **tensors)
+
+
+def describe(arrays: dict[str, np.ndarray]) -> dict[str, dict[str, Any]]:
+    """Shapes and dtypes of arrays, as recorded in the metadata."""
+    return {k: {"shape": list(a.shape), "dtype": str(a.dtype)} for k, a in arrays.items()}

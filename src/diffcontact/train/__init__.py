@@ -1,0 +1,1 @@
+"""Training: Lightning data module (and, later, the Lightning module, callbacks)."""
