@@ -48,14 +48,20 @@ def build_model(
     layers: int = 3,
     seed: int = 0,
     on_failure: str = "raise",
+    solver=None,
 ) -> ContactModelNet:
-    """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters."""
+    """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters.
+
+    ``solver`` (signature of :func:`diffcontact.solver.solve_cone_qp`) replaces the contact solver, e.g. to count
+    failures; ``on_failure`` is passed to the default one.
+    """
     if name not in MODEL_NAMES:
         raise ConfigError(f"model = {name!r} is not one of {list(MODEL_NAMES)}")
     dynamics, reg = MODEL_NAMES[name]
     system = task.system
     comp = task.config.section("contact").number("compensation", 0.125, lo=0.0, hi=1.0)
-    sim = Simulator(system, dynamics, ContactModel(reg=reg, compensation=comp, on_failure=on_failure))
+    model = ContactModel(reg=reg, compensation=comp, solver=solver, on_failure=on_failure)
+    sim = Simulator(system, dynamics, model)
     homogeneous = len(task.config.section("contact").numbers("mu")) == 1
     params = LearnedParams(
         system.n_bodies,

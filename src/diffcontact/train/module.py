@@ -1,0 +1,112 @@
+"""Lightning module: one of the four models trained on 5-frame chunks (paper Sec. 5, spec E).
+
+L1 loss on the predicted chunk (positions and velocities of every point, frame 0 included as published), AdamW
+(lr 1e-3, weight decay 1e-4).  Optimisation is manual so that a step whose gradients are not finite is skipped
+entirely (no update, no weight decay, no moment update) and counted.  Logged per epoch: losses, learned μ and e
+(summary), learned mass ratios, skipped steps and contact-solver failures.
+"""
+
+from __future__ import annotations
+
+import lightning.pytorch as pl
+import torch
+
+from diffcontact.models import build_model
+from diffcontact.solver import solve_cone_qp
+from diffcontact.systems.registry import build_task
+
+
+class ContactLightningModule(pl.LightningModule):
+    """Trains ``model`` (one of ``diffcontact.models.MODEL_NAMES``) on the chunks of ``task``."""
+
+    def __init__(
+        self,
+        task: str,
+        model: str = "CM-CD-CLNN",
+        lr: float = 1e-3,
+        weight_decay: float = 1e-4,
+        mu_transform: str = "relu",
+        e_transform: str = "hardsigmoid",
+        hidden: int = 256,
+        layers: int = 3,
+        seed: int = 0,
+        dtype: str = "float32",
+    ):
+        super().__init__()
+        self.save_hyperparameters()
+        self.automatic_optimization = False
+        self.task = build_task(task)
+        self.solver_failures = 0
+        self.skipped_steps = 0
+        net = build_model(
+            self.task,
+            model,
+            mu_transform=mu_transform,
+            e_transform=e_transform,
+            hidden=hidden,
+            layers=layers,
+            seed=seed,
+            solver=self._counting_solver,
+        )
+        self.net = net.to(getattr(torch, dtype))
+
+    def _counting_solver(self, A, q, mu, lower=None, active=None, **_):
+        """The contact solver, continuing with zero impulses on failure and counting them."""
+        f, info = solve_cone_qp(A, q, mu, lower, active, on_failure="count", return_info=True)
+        self.solver_failures += info.n_failed
+        return f
+
+    def loss(self, batch) -> torch.Tensor:
+        """Mean absolute error of the predicted chunk: x, v (B, L, P, d)."""
+        x, v = batch[0], batch[1]
+        px, pv = self.net(x[:, 0], v[:, 0], x.shape[1])
+        return 0.5 * ((px - x).abs().mean() + (pv - v).abs().mean())
+
+    def training_step(self, batch, batch_idx: int):
+        opt = self.optimizers()
+        loss = self.loss(batch)
+        opt.zero_grad()
+        self.manual_backward(loss)
+        grads = [p.grad for p in self.net.parameters() if p.grad is not None]
+        if all(bool(torch.isfinite(g).all()) for g in grads) and bool(torch.isfinite(loss)):
+            opt.step()
+        else:  # skipped entirely: no update, no weight decay
+            self.skipped_steps += 1
+            opt.zero_grad()
+        self.log("train/loss", loss.detach(), prog_bar=True, on_step=False, on_epoch=True, batch_size=batch[0].shape[0])
+        return loss.detach()
+
+    def validation_step(self, batch, batch_idx: int):
+        loss = self.loss(batch)
+        self.log("val/loss", loss, prog_bar=True, on_epoch=True, batch_size=batch[0].shape[0])
+        return loss
+
+    def on_train_epoch_end(self) -> None:
+        p = self.net.params
+        self.log_dict(
+            {
+                "learned/mu_mean": p.mu.detach().mean(),
+                "learned/e_mean": p.e.detach().mean(),
+                "train/skipped_steps": float(self.skipped_steps),
+                "train/solver_failures": float(self.solver_failures),
+            }
+        )
+        ratios = self.mass_ratio()
+        for i, r in enumerate(ratios.tolist()):
+            self.log(f"learned/mass_ratio_{i}", r)
+
+    def mass_ratio(self) -> torch.Tensor:
+        """Learned masses divided by the first body's: (n_bodies,)."""
+        m = self.net.params.inertia.masses.detach()
+        return m / m[0]
+
+    def configure_optimizers(self):
+        return torch.optim.AdamW(self.net.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["counters"] = {"skipped_steps": self.skipped_steps, "solver_failures": self.solver_failures}
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        counters = checkpoint.get("counters", {})
+        self.skipped_steps = counters.get("skipped_steps", 0)
+        self.solver_failures = counters.get("solver_failures", 0)

@@ -1,0 +1,54 @@
+"""Lightning training of the contact models: non-finite steps are skipped, resume continues exactly."""
+
+from __future__ import annotations
+
+import lightning.pytorch as pl
+import torch
+from test_models import _colliding_chunks
+from torch.utils.data import DataLoader, TensorDataset
+
+import diffcontact as dc
+from diffcontact.train.module import ContactLightningModule
+
+
+def _loader(seed: int = 0) -> DataLoader:
+    X, V = _colliding_chunks(dc.build_task("BP1"), 16, seed=seed)
+    return DataLoader(TensorDataset(X.float(), V.float()), batch_size=8)
+
+
+def _trainer(**kw) -> pl.Trainer:
+    return pl.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False, deterministic=True, **kw)
+
+
+def _module() -> ContactLightningModule:
+    return ContactLightningModule("BP1", hidden=8, layers=1, mu_transform="softplus", e_transform="sigmoid", lr=1e-2)
+
+
+def test_a_step_with_non_finite_gradients_is_skipped_entirely():
+    module = _module()
+    before = {k: v.clone() for k, v in module.net.state_dict().items()}
+
+    def poisoned_loss(batch):
+        return module.net.params.mu_raw.sum() * float("nan")
+
+    module.loss = poisoned_loss
+    _trainer(max_epochs=1, enable_checkpointing=False).fit(module, _loader())
+    after = module.net.state_dict()
+    assert module.skipped_steps == 2  # two batches, both skipped
+    assert all(torch.equal(before[k], after[k]) for k in before)  # no update, no weight decay
+
+
+def test_resume_continues_from_the_saved_epoch_with_the_same_optimiser_state(tmp_path):
+    torch.manual_seed(0)
+    straight = _module()
+    _trainer(max_epochs=4, enable_checkpointing=False).fit(straight, _loader())
+
+    torch.manual_seed(0)
+    first = _module()
+    ckpt = pl.callbacks.ModelCheckpoint(dirpath=tmp_path, save_last=True, every_n_epochs=1, save_top_k=-1)
+    _trainer(max_epochs=2, callbacks=[ckpt]).fit(first, _loader())
+    resumed = _module()
+    _trainer(max_epochs=4, enable_checkpointing=False).fit(resumed, _loader(), ckpt_path=str(tmp_path / "last.ckpt"))
+    assert resumed.current_epoch == straight.current_epoch == 4
+    for k, v in straight.net.state_dict().items():
+        assert torch.allclose(v, resumed.net.state_dict()[k], rtol=1e-5, atol=1e-6), k
