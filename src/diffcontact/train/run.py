@@ -1,0 +1,139 @@
+"""A training run: data, model, Lightning trainer, checkpoints, logs and the learned parameters."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+
+import lightning.pytorch as pl
+import torch
+
+import diffcontact
+from diffcontact.errors import ConfigError
+from diffcontact.models import MODEL_NAMES
+from diffcontact.train.datamodule import ContactDataModule
+from diffcontact.train.module import ContactLightningModule
+
+
+def _write_json(path: Path, obj) -> None:
+    """Write JSON to a temporary file, then rename (an interrupted run leaves no half-written file)."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def learned_summary(module: ContactLightningModule) -> dict:
+    """``{"mu", "e", "mass_ratio"}``, each ``{"learned": [...], "true": [...], "max_abs_error": x}``.
+
+    μ and e per contact slot; mass ratio = mass / mass of the first body, learned and true."""
+    truth = module.task.params
+    learned = module.net.params
+    m_true = truth.inertia.masses.double()
+    pairs = {
+        "mu": (learned.mu.detach().double(), truth.mu.double()),
+        "e": (learned.e.detach().double(), truth.e.double()),
+        "mass_ratio": (module.mass_ratio().double(), m_true / m_true[0]),
+    }
+    return {
+        k: {"learned": a.tolist(), "true": b.tolist(), "max_abs_error": float((a - b).abs().max())}
+        for k, (a, b) in pairs.items()
+    }
+
+
+def train_run(
+    task: str,
+    model: str = "CM-CD-CLNN",
+    *,
+    epochs: int = 1000,
+    seed: int = 0,
+    out: str | Path | None = None,
+    data_root: str | Path = "data",
+    batch_size: int = 200,
+    lr: float = 1e-3,
+    weight_decay: float = 1e-4,
+    mu_transform: str = "relu",
+    e_transform: str = "hardsigmoid",
+    dtype: str = "float32",
+    resume: bool = False,
+    progress: bool = True,
+) -> dict:
+    """Train ``model`` on the generated dataset of ``task`` into ``out`` (default runs/<task>/<model>/seed<seed>).
+
+    The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last, every
+    epoch), logs/ (CSV and TensorBoard) and learned.json.  ``resume`` continues from checkpoints/last.ckpt.
+    Returns the learned summary.
+    """
+    if model not in MODEL_NAMES:
+        raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES)}")
+    if epochs < 1:
+        raise ConfigError(f"epochs = {epochs} is not >= 1")
+    run = Path(out) if out else Path("runs") / task / model / f"seed{seed}"
+    ckpt_dir = run / "checkpoints"
+    last = ckpt_dir / "last.ckpt"
+    if resume and not last.is_file():
+        raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
+    run.mkdir(parents=True, exist_ok=True)
+    args = dict(
+        task=task,
+        model=model,
+        epochs=epochs,
+        seed=seed,
+        batch_size=batch_size,
+        lr=lr,
+        weight_decay=weight_decay,
+        mu_transform=mu_transform,
+        e_transform=e_transform,
+        dtype=dtype,
+        data_root=str(data_root),
+    )
+    versions = dict(
+        diffcontact=diffcontact.__version__,
+        torch=torch.__version__,
+        lightning=pl.__version__,
+        python=platform.python_version(),
+    )
+    _write_json(run / "config.json", {"args": args, "versions": versions})
+
+    pl.seed_everything(seed, workers=True)
+    data = ContactDataModule(task, root=data_root, batch_size=batch_size, dtype=getattr(torch, dtype), seed=seed)
+    module = ContactLightningModule(
+        task,
+        model,
+        lr=lr,
+        weight_decay=weight_decay,
+        mu_transform=mu_transform,
+        e_transform=e_transform,
+        seed=seed,
+        dtype=dtype,
+    )
+    loggers = [pl.loggers.CSVLogger(run / "logs", name="csv"), pl.loggers.TensorBoardLogger(run / "logs", name="tb")]
+    checkpoints = pl.callbacks.ModelCheckpoint(
+        dirpath=ckpt_dir,
+        filename="best-{epoch}",
+        monitor="val/loss",
+        mode="min",
+        save_top_k=1,
+        save_last=True,
+        every_n_epochs=1,
+    )
+    trainer = pl.Trainer(
+        max_epochs=epochs,
+        logger=loggers,
+        callbacks=[checkpoints],
+        enable_progress_bar=progress,
+        deterministic=True,
+        log_every_n_steps=1,
+        enable_model_summary=False,
+    )
+    trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume else None)
+    best = checkpoints.best_model_path
+    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
+    summary = learned_summary(chosen)  # the parameters of the checkpoint chosen on the validation split
+    summary["best_checkpoint"] = best
+    summary["epochs_trained"] = int(trainer.current_epoch)
+    summary["skipped_steps"] = module.skipped_steps
+    summary["solver_failures"] = module.solver_failures
+    _write_json(run / "learned.json", summary)
+    return summary
