@@ -94,6 +94,38 @@ def generate(
     typer.echo(f"done: {len(names)} task(s) in {time.perf_counter() - t0:.1f} s -> {out}")
 
 
+@app.command("train")
+def train(
+    task: str = typer.Argument(..., help="Task name (its dataset must exist: diffcontact generate TASK)."),
+    model: str = typer.Option("CM-CD-CLNN", "--model", help="CM-CD-CLNN, CM-CD-CHNN, CMr-CD-CLNN or CMr-CD-CHNN."),
+    epochs: int = typer.Option(1000, "--epochs", help="Epochs (published: about 1000)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the initial parameters and the batch order."),
+    out: str = typer.Option("", "--out", help="Run directory (default runs/TASK/MODEL/seedS)."),
+    data: str = typer.Option("data", "--data", help="Dataset root (as given to diffcontact generate --out)."),
+    batch_size: int = typer.Option(200, "--batch-size", help="Chunks per batch."),
+    lr: float = typer.Option(1e-3, "--lr", help="AdamW learning rate."),
+    smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of ReLU / hardsigmoid."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from the run's last checkpoint."),
+    progress: bool = typer.Option(True, help="Show a progress bar."),
+) -> None:
+    """Train a model on a task's chunks; writes checkpoints, logs and learned.json into the run directory."""
+    from diffcontact.errors import ConfigError, DatasetError
+    from diffcontact.train.run import train_run
+
+    try:
+        summary = train_run(
+            task, model, epochs=epochs, seed=seed, out=out or None, data_root=data, batch_size=batch_size, lr=lr,
+            mu_transform="softplus" if smooth else "relu", e_transform="sigmoid" if smooth else "hardsigmoid",
+            resume=resume, progress=progress,
+        )  # fmt: skip
+    except (ConfigError, DatasetError) as err:
+        typer.echo(f"{type(err).__name__}: {err}", err=True)
+        raise typer.Exit(2) from err
+    for key in ("mu", "e", "mass_ratio"):
+        item = summary[key]
+        typer.echo(f"{key:10s} max |learned - true| = {item['max_abs_error']:.4f}")
+
+
 @bench_app.command("simulate")
 def bench_simulate(
     tasks: list[str] = typer.Option([], "--task", "-t", help="Tasks (default: the 8 benchmark tasks)."),
