@@ -22,6 +22,7 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     run = tmp_path / "run"
     summary = train_run("BP1", epochs=2, out=run, data_root=data_root, batch_size=8, progress=False)
     assert (run / "config.json").is_file() and (run / "checkpoints" / "last.ckpt").is_file()
+    assert (run / "loss.png").stat().st_size > 0
     assert list((run / "logs" / "csv").rglob("metrics.csv")) and list((run / "logs" / "tb").rglob("events.*"))
     learned = json.loads((run / "learned.json").read_text())
     assert learned == json.loads(json.dumps(summary))

@@ -24,6 +24,40 @@ def _write_json(path: Path, obj) -> None:
     os.replace(tmp, path)
 
 
+def plot_losses(csv_dir: Path, out: Path) -> Path | None:
+    """Train and validation loss per epoch from the CSV log (the newest version) into a PNG; None if no log."""
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    logs = sorted(csv_dir.rglob("metrics.csv"), key=lambda p: p.stat().st_mtime)
+    if not logs:
+        return None
+    curves: dict[str, dict[int, float]] = {"train/loss": {}, "val/loss": {}}
+    with logs[-1].open() as fh:
+        for row in csv.DictReader(fh):
+            for key, curve in curves.items():
+                if row.get(key):
+                    curve[int(row["epoch"])] = float(row[key])
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for key, curve in curves.items():
+        if curve:
+            ax.plot(list(curve), list(curve.values()), label=key)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("L1 loss")
+    ax.set_yscale("log")
+    ax.legend()
+    fig.tight_layout()
+    tmp = out.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, out)
+    return out
+
+
 def learned_summary(module: ContactLightningModule) -> dict:
     """``{"mu", "e", "mass_ratio"}``, each ``{"learned": [...], "true": [...], "max_abs_error": x}``.
 
@@ -62,7 +96,8 @@ def train_run(
     """Train ``model`` on the generated dataset of ``task`` into ``out`` (default runs/<task>/<model>/seed<seed>).
 
     The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last, every
-    epoch), logs/ (CSV and TensorBoard) and learned.json.  ``resume`` continues from checkpoints/last.ckpt.
+    epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  ``resume`` continues
+    from checkpoints/last.ckpt.
     Returns the learned summary.
     """
     if model not in MODEL_NAMES:
@@ -136,4 +171,5 @@ def train_run(
     summary["skipped_steps"] = module.skipped_steps
     summary["solver_failures"] = module.solver_failures
     _write_json(run / "learned.json", summary)
+    plot_losses(run / "logs" / "csv", run / "loss.png")
     return summary
