@@ -35,15 +35,12 @@ def _weak_cone(s, lam, d):
     return math.sqrt(nl) <= 1e-6 * max(1.0, math.sqrt(ns))
 
 
-@njit(cache=True, fastmath=_FM, error_model="numpy")
-def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q):
-    """Exact KKT residuals (complementarity s∘λ = 0, not the central path); returns their max relative to
-    max(1, ‖z‖∞), counting any violation of the cones as well."""
-    K = s_l.shape[0]
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
+def dual_residual(P, c, z, lam_l, lam_q, on, onl, d, r_z):
+    """r_z = P z + c + Gᵀλ (G z = (−z_n on the rays, −z on the cones)); returns max(1, ‖z‖∞)."""
+    K = lam_l.shape[0]
     n = K * d
-    soc = d > 1
     zmax = 1.0
-    worst = 0.0
     for i in range(n):
         t = c[i]
         for j in range(n):
@@ -53,6 +50,23 @@ def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_
     for k in range(K):
         if onl[k]:
             r_z[k * d] -= lam_l[k]
+        if on[k] and d > 1:
+            for i in range(d):
+                r_z[k * d + i] -= lam_q[k, i]
+    return zmax
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q):
+    """Exact KKT residuals (complementarity s∘λ = 0, not the central path); returns their max relative to
+    max(1, ‖z‖∞), counting any violation of the cones as well."""
+    K = s_l.shape[0]
+    n = K * d
+    soc = d > 1
+    worst = 0.0
+    zmax = dual_residual(P, c, z, lam_l, lam_q, on, onl, d, r_z)
+    for k in range(K):
+        if onl[k]:
             r_l[k] = -z[k * d] + s_l[k] - h_l[k]
             comp_l[k] = s_l[k] * lam_l[k]
             worst = max(worst, abs(r_l[k]), abs(comp_l[k]), -s_l[k], -lam_l[k])
@@ -64,7 +78,6 @@ def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_
             rl = 0.0
             dot = 0.0
             for i in range(d):
-                r_z[k * d + i] -= lam_q[k, i]
                 r_q[k, i] = -z[k * d + i] + s_q[k, i]
                 worst = max(worst, abs(r_q[k, i]))
                 dot += s_q[k, i] * lam_q[k, i]

@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from diffcontact.solver.exact import polish
+from diffcontact.solver.exact import dual_residual, polish
 
 CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
 # fast-math without the no-NaN / no-inf assumptions: the kernel tests for both
@@ -248,19 +248,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
 
     for it in range(max_iter + 1):
         # ---- residuals ----
-        zmax = 1.0
-        for i in range(n):
-            t = c[i]
-            for j in range(n):
-                t += P[i, j] * z[j]
-            r_z[i] = t
-            zmax = max(zmax, abs(z[i]))
-        for k in range(K):
-            if onl[k]:
-                r_z[k * d] -= lam_l[k]
-            if on[k] and soc:
-                for i in range(d):
-                    r_z[k * d + i] -= lam_q[k, i]
+        zmax = dual_residual(P, c, z, lam_l, lam_q, on, onl, d, r_z)
         pres = 0.0
         gap = 0.0
         for k in range(K):
