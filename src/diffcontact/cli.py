@@ -121,9 +121,15 @@ def train(
     except (ConfigError, DatasetError) as err:
         typer.echo(f"{type(err).__name__}: {err}", err=True)
         raise typer.Exit(2) from err
+    typer.echo(f"run: {summary['run_dir']}  ({summary['wall_time_s']:.0f} s, best epoch: {summary['best_checkpoint']})")
     for key in ("mu", "e", "mass_ratio"):
         item = summary[key]
-        typer.echo(f"{key:10s} max |learned - true| = {item['max_abs_error']:.4f}")
+        learned, true = item["learned"], item["true"]
+        if len(set(true)) == 1 and len(set(learned)) == 1:  # homogeneous: one value for every slot
+            learned, true = learned[:1], true[:1]
+        shown = ", ".join(f"{a:.4f}/{b:.4f}" for a, b in zip(learned[:8], true[:8]))
+        more = f" … ({len(learned)} values)" if len(learned) > 8 else ""
+        typer.echo(f"{key:10s} learned/true: {shown}{more}   max |error| = {item['max_abs_error']:.4f}")
 
 
 @bench_app.command("simulate")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import time
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -131,6 +132,7 @@ def train_run(
     )
     _write_json(run / "config.json", {"args": args, "versions": versions})
 
+    started = time.perf_counter()
     pl.seed_everything(seed, workers=True)
     data = ContactDataModule(task, root=data_root, batch_size=batch_size, dtype=getattr(torch, dtype), seed=seed)
     module = ContactLightningModule(
@@ -170,6 +172,8 @@ def train_run(
     summary["epochs_trained"] = int(trainer.current_epoch)
     summary["skipped_steps"] = module.skipped_steps
     summary["solver_failures"] = module.solver_failures
+    summary["wall_time_s"] = time.perf_counter() - started
+    summary["run_dir"] = str(run)
     _write_json(run / "learned.json", summary)
     plot_losses(run / "logs" / "csv", run / "loss.png")
     return summary
