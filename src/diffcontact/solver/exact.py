@@ -100,6 +100,49 @@ def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
+def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak, M):
+    """The linearised optimality conditions K (N × N, N = n + K + K·d) in M: unknowns (dz, dλ_rays, dλ_cones), rows
+    P dz + Gᵀdλ; L(λ) G-part + L(s) dλ per used cone (arrow matrices); dλ = 0-type identity rows for unused
+    cones and, with ``use_weak``, for weakly active ones (which keep their Gᵀ column)."""
+    K = s_l.shape[0]
+    n = K * d
+    N = n + K + K * d
+    for i in range(N):
+        for j in range(N):
+            M[i, j] = 0.0
+    for i in range(n):
+        for j in range(n):
+            M[i, j] = P[i, j]
+    for k in range(K):
+        row = n + k
+        if onl[k]:
+            M[k * d, row] = -1.0
+        if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k])):
+            M[row, k * d] = lam_l[k]
+            M[row, row] = s_l[k]
+        else:
+            M[row, row] = 1.0
+        used = on[k] and d > 1
+        weak = used and use_weak and _weak_cone(s_q[k], lam_q[k], d)
+        for i in range(d):
+            row = n + K + k * d + i
+            if used:
+                M[k * d + i, row] = -1.0
+            if used and not weak:
+                if i == 0:
+                    for j in range(d):
+                        M[row, k * d + j] = lam_q[k, j]
+                        M[row, n + K + k * d + j] = s_q[k, j]
+                else:
+                    M[row, k * d] = lam_q[k, i]
+                    M[row, k * d + i] = lam_q[k, 0]
+                    M[row, n + K + k * d] = s_q[k, i]
+                    M[row, n + K + k * d + i] = s_q[k, 0]
+            else:
+                M[row, row] = 1.0
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
 def _gauss_solve(M, b):
     """Solve M x = b in place (b becomes x) by Gaussian elimination with partial pivoting; False if singular."""
     N = M.shape[0]
@@ -174,52 +217,28 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
     for _ in range(steps):
         if res <= 1e-14:
             break
+        _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak, M)
         for i in range(N):
-            rhs[i] = 0.0
-            for j in range(N):
-                M[i, j] = 0.0
-        for i in range(n):
-            rhs[i] = -r_z[i]
-            for j in range(n):
-                M[i, j] = P[i, j]
+            rhs[i] = -r_z[i] if i < n else 0.0
         for k in range(K):
-            row = n + k
             if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k])):
-                M[k * d, row] = -1.0
-                M[row, k * d] = lam_l[k]
-                M[row, row] = s_l[k]
-                rhs[row] = -comp_l[k] + lam_l[k] * r_l[k]
+                rhs[n + k] = -comp_l[k] + lam_l[k] * r_l[k]
             elif onl[k]:  # weakly active: taken as inactive, its multiplier driven to zero
-                M[k * d, row] = -1.0
-                M[row, row] = 1.0
-                rhs[row] = -lam_l[k]
-            else:
-                M[row, row] = 1.0
-            weak = use_weak and on[k] and soc and _weak_cone(s_q[k], lam_q[k], d)
-            for i in range(d):
-                row = n + K + k * d + i
-                if weak:
-                    M[k * d + i, row] = -1.0
-                    M[row, row] = 1.0
-                    rhs[row] = -lam_q[k, i]
-                elif on[k] and soc:
-                    M[k * d + i, row] = -1.0
-                    # L(λ) dz_k + L(s) dλ = −s∘λ + L(λ) r_q
-                    lr = lam_q[k, 0] * r_q[k, i] if i > 0 else 0.0
-                    if i == 0:
-                        for j in range(d):
-                            M[row, k * d + j] = lam_q[k, j]
-                            M[row, n + K + k * d + j] = s_q[k, j]
-                            lr += lam_q[k, j] * r_q[k, j]
-                    else:
-                        M[row, k * d] = lam_q[k, i]
-                        M[row, k * d + i] = lam_q[k, 0]
-                        M[row, n + K + k * d] = s_q[k, i]
-                        M[row, n + K + k * d + i] = s_q[k, 0]
-                        lr += lam_q[k, i] * r_q[k, 0]
-                    rhs[row] = -comp_q[k, i] + lr
-                else:
-                    M[row, row] = 1.0
+                rhs[n + k] = -lam_l[k]
+            if on[k] and soc:
+                weak = use_weak and _weak_cone(s_q[k], lam_q[k], d)
+                for i in range(d):
+                    row = n + K + k * d + i
+                    if weak:
+                        rhs[row] = -lam_q[k, i]
+                    else:  # L(λ) dz_k + L(s) dλ = −s∘λ + L(λ) r_q
+                        lr = 0.0
+                        if i == 0:
+                            for j in range(d):
+                                lr += lam_q[k, j] * r_q[k, j]
+                        else:
+                            lr = lam_q[k, 0] * r_q[k, i] + lam_q[k, i] * r_q[k, 0]
+                        rhs[row] = -comp_q[k, i] + lr
         if not _gauss_solve(M, rhs):
             singular = True
             break
@@ -243,14 +262,11 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
         if not (new < res):
             break
         res = new
-        for i in range(n):
-            z[i] = zt[i]
-        for k in range(K):
-            s_l[k] = slt[k]
-            lam_l[k] = llt[k]
-            for i in range(d):
-                s_q[k, i] = sqt[k, i]
-                lam_q[k, i] = lqt[k, i]
+        z[:] = zt
+        s_l[:] = slt
+        lam_l[:] = llt
+        s_q[:] = sqt
+        lam_q[:] = lqt
     return res, singular
 
 
@@ -269,45 +285,15 @@ def polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
 def _adjoint_one(P, s_l, lam_l, s_q, lam_q, on, onl, d, g, M, x, use_weak):
     """Kᵀ[u; v] = [g; 0] for one element into x; with ``use_weak`` its weakly active cones (a contact exactly
     at a switch) are taken as inactive, which gives a one-sided derivative.  False if K is singular."""
-    K = s_l.shape[0]
-    n = K * d
-    N = n + K + K * d
+    n = s_l.shape[0] * d
+    N = M.shape[0]
+    _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak, M)
     for i in range(N):
         x[i] = g[i] if i < n else 0.0
-        for j in range(N):
-            M[i, j] = 0.0
-    # build Kᵀ directly: entry (row, col) of K goes to (col, row)
-    for i in range(n):
-        for j in range(n):
-            M[j, i] = P[i, j]
-    for k in range(K):
-        row = n + k
-        if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k])):
-            M[row, k * d] = -1.0  # K[k·d, row] = −1
-            M[k * d, row] = lam_l[k]  # K[row, k·d] = λ
-            M[row, row] = s_l[k]
-        else:
-            if onl[k]:
-                M[row, k * d] = -1.0
-            M[row, row] = 1.0
-        weak = use_weak and d > 1 and on[k] and _weak_cone(s_q[k], lam_q[k], d)
-        for i in range(d):
-            row = n + K + k * d + i
-            if on[k] and d > 1:
-                M[row, k * d + i] = -1.0
-            if on[k] and d > 1 and not weak:
-                # K rows of this cone: L(λ) on the z-block, L(s) on the multiplier block (transposed)
-                if i == 0:
-                    for j in range(d):
-                        M[k * d + j, row] = lam_q[k, j]
-                        M[n + K + k * d + j, row] = s_q[k, j]
-                else:
-                    M[k * d, row] = lam_q[k, i]
-                    M[k * d + i, row] = lam_q[k, 0]
-                    M[n + K + k * d, row] = s_q[k, i]
-                    M[n + K + k * d + i, row] = s_q[k, 0]
-            else:
-                M[row, row] = 1.0
+        for j in range(i + 1, N):  # transpose in place
+            t = M[i, j]
+            M[i, j] = M[j, i]
+            M[j, i] = t
     return _gauss_solve(M, x)
 
 
@@ -337,3 +323,14 @@ def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, g):
                         v_l[b, k] = x[n + k]
                     break
     return u, v_l, ok
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def kkt_matrix_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak):
+    """The matrices K of :func:`_kkt_matrix` for a batch: (B, N, N)."""
+    B, K = s_l.shape
+    N = K * d + K + K * d
+    out = np.empty((B, N, N))
+    for b in range(B):
+        _kkt_matrix(P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], d, use_weak, out[b])
+    return out

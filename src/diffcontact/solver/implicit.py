@@ -29,14 +29,12 @@ class ImplicitConeQP(torch.autograd.Function):
     """Returns ``z_star`` (computed beforehand, without autograd) and differentiates it implicitly."""
 
     @staticmethod
-    def forward(P, c, lower, z_star, result: IPMResult, d: int):  # noqa: D102
+    def forward(P, c, lower, z_star, result: IPMResult):  # noqa: D102
         return z_star.clone()
 
     @staticmethod
     def setup_context(ctx, inputs, output):  # noqa: D102
-        _, _, _, _, result, d = inputs
-        ctx.result = result
-        ctx.d = d
+        ctx.result = inputs[4]
         ctx.save_for_backward(output)
 
     @staticmethod
@@ -53,16 +51,7 @@ class ImplicitConeQP(torch.autograd.Function):
             grad_c = -u
         if ctx.needs_input_grad[2]:
             grad_l = res.on_l * res.lam_l * v_l
-        return grad_P, grad_c, grad_l, None, None, None
-
-
-def _arrow(x: torch.Tensor) -> torch.Tensor:
-    """Arrow matrix L(x) = [[x0, x1ᵀ], [x1, x0·I]]: (..., d) -> (..., d, d)."""
-    d = x.shape[-1]
-    L = x[..., :1, None] * torch.eye(d, dtype=x.dtype)
-    L[..., 0, 1:] = x[..., 1:]
-    L[..., 1:, 0] = x[..., 1:]
-    return L
+        return grad_P, grad_c, grad_l, None, None
 
 
 def adjoint_solve(res: IPMResult, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -85,33 +74,14 @@ def adjoint_solve(res: IPMResult, g: torch.Tensor) -> tuple[torch.Tensor, torch.
 
 
 def _adjoint_lstsq(res: IPMResult, g: torch.Tensor, sel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Least-squares adjoint for the selected (degenerate) elements, with the dense K built in torch."""
-    on, on_l_b = res.on[sel], res.on_l[sel]
-    B, K = on.shape
+    """Least-squares adjoint for the selected (degenerate) elements, weakly active cones taken as inactive."""
     d = res.s_q.shape[-1]
-    n = K * d
-    N = n + K + K * d
-    dt = res.P.dtype
-    on_l = on_l_b.to(dt)
-    on_q = on.to(dt) if d > 1 else torch.zeros_like(on_l)
-    Kmat = torch.zeros(B, N, N, dtype=dt)
-    Kmat[:, :n, :n] = res.P[sel]
-    k = torch.arange(K)
-    row_n, ray = k * d, n + k
-    Kmat[:, row_n, ray] = -on_l
-    Kmat[:, ray, row_n] = on_l * res.lam_l[sel]
-    Kmat[:, ray, ray] = on_l * res.s_l[sel] + (1.0 - on_l)
-    i = torch.arange(d)
-    var = (k[:, None] * d + i[None, :]).reshape(-1)
-    Kmat[:, var, n + K + var] = -on_q.repeat_interleave(d, -1)
-    blk = k[:, None, None] * d
-    rows = (n + K + blk + i[None, :, None]).expand(K, d, d)
-    cols_v = (blk + i[None, None, :]).expand(K, d, d)
-    cols_m = (n + K + blk + i[None, None, :]).expand(K, d, d)
-    eye = torch.eye(d, dtype=dt)
-    Kmat[:, rows, cols_v] = _arrow(res.lam_q[sel]) * on_q[..., None, None]
-    Kmat[:, rows, cols_m] = _arrow(res.s_q[sel]) * on_q[..., None, None] + (1.0 - on_q)[..., None, None] * eye
-    rhs = torch.zeros(B, N, dtype=dt)
+    n, K = g.shape[-1], res.on.shape[-1]
+    parts = [
+        np.ascontiguousarray(t[sel].numpy()) for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)
+    ]
+    Kmat = torch.from_numpy(exact.kkt_matrix_batch(*parts, d, True))
+    rhs = torch.zeros(Kmat.shape[0], Kmat.shape[-1], dtype=Kmat.dtype)
     rhs[:, :n] = g[sel]
     sol = torch.linalg.lstsq(Kmat.mT, rhs.unsqueeze(-1)).solution.squeeze(-1)
     return sol[:, :n], sol[:, n : n + K]

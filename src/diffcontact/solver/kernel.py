@@ -279,14 +279,11 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
         if res < best_res:
             best_res = res
             best_age = 0
-            for i in range(n):
-                z_out[i] = z[i]
-            for k in range(K):
-                sl_out[k] = s_l[k]
-                ll_out[k] = lam_l[k]
-                for i in range(d):
-                    sq_out[k, i] = s_q[k, i]
-                    lq_out[k, i] = lam_q[k, i]
+            z_out[:] = z
+            sl_out[:] = s_l
+            ll_out[:] = lam_l
+            sq_out[:] = s_q
+            lq_out[:] = lam_q
         else:
             best_age += 1
         if res <= tol:

@@ -229,7 +229,7 @@ def solve_cone_qp(
         # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
         c_n = c.view(B, K, d)[..., 0] - (mu64 * speed * sigma / gamma[:, None]) * zero_mu
         c = torch.cat([c_n.unsqueeze(-1), c.view(B, K, d)[..., 1:]], -1).view(B, n)
-    z = ImplicitConeQP.apply(P, c, l_hat, z_star, result, d)
+    z = ImplicitConeQP.apply(P, c, l_hat, z_star, result)
     f = (gamma[:, None] * T * z).to(out_dtype)
     if return_info:
         return f, SolverInfo(status=result.status, iterations=result.iterations, residual=result.residual)
