@@ -14,6 +14,13 @@ import math
 import numpy as np
 from numba import njit, prange
 
+
+def contact_dims(d: int) -> tuple:
+    """The ``dims`` argument of the compiled functions for contact dimension d: a tuple of length d (its length
+    is part of its type, so each d is compiled on its own with the loops over a contact's components unrolled)."""
+    return (0,) * d
+
+
 # fast-math without the no-NaN / no-inf assumptions (the callers test for both)
 _FM = {"contract", "arcp", "nsz", "afn", "reassoc"}
 
@@ -25,8 +32,9 @@ def _weak_ray(s, lam):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _weak_cone(s, lam, d):
+def _weak_cone(s, lam, dims):
     """A cone whose multiplier is negligible next to its slack: sticking, or exactly at stick/slip."""
+    d = len(dims)
     ns = 0.0
     nl = 0.0
     for i in range(d):
@@ -36,8 +44,9 @@ def _weak_cone(s, lam, d):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def dual_residual(P, c, z, lam_l, lam_q, on, onl, d, r_z):
+def dual_residual(P, c, z, lam_l, lam_q, on, onl, dims, r_z):
     """r_z = P z + c + Gᵀλ (G z = (−z_n on the rays, −z on the cones)); returns max(1, ‖z‖∞)."""
+    d = len(dims)
     K = lam_l.shape[0]
     n = K * d
     zmax = 1.0
@@ -57,14 +66,15 @@ def dual_residual(P, c, z, lam_l, lam_q, on, onl, d, r_z):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q):
+def _kkt_residual(P, c, h_l, on, onl, dims, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q):
     """Exact KKT residuals (complementarity s∘λ = 0, not the central path); returns their max relative to
     max(1, ‖z‖∞), counting any violation of the cones as well."""
+    d = len(dims)
     K = s_l.shape[0]
     n = K * d
     soc = d > 1
     worst = 0.0
-    zmax = dual_residual(P, c, z, lam_l, lam_q, on, onl, d, r_z)
+    zmax = dual_residual(P, c, z, lam_l, lam_q, on, onl, dims, r_z)
     for k in range(K):
         if onl[k]:
             r_l[k] = -z[k * d] + s_l[k] - h_l[k]
@@ -100,10 +110,11 @@ def _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak, M):
+def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M):
     """The linearised optimality conditions K (N × N, N = n + K + K·d) in M: unknowns (dz, dλ_rays, dλ_cones), rows
     P dz + Gᵀdλ; L(λ) G-part + L(s) dλ per used cone (arrow matrices); dλ = 0-type identity rows for unused
     cones and, with ``use_weak``, for weakly active ones (which keep their Gᵀ column)."""
+    d = len(dims)
     K = s_l.shape[0]
     n = K * d
     N = n + K + K * d
@@ -123,7 +134,7 @@ def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak, M):
         else:
             M[row, row] = 1.0
         used = on[k] and d > 1
-        weak = used and use_weak and _weak_cone(s_q[k], lam_q[k], d)
+        weak = used and use_weak and _weak_cone(s_q[k], lam_q[k], dims)
         for i in range(d):
             row = n + K + k * d + i
             if used:
@@ -182,7 +193,128 @@ def _gauss_solve(M, b):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, use_weak):
+def solve_kkt(M, K, dims, on, onl, b, work, ipos, transpose):
+    """Solve M x = b (or Mᵀ x = b) for the matrix of :func:`_kkt_matrix`; b is overwritten with x.
+
+    Exact block elimination before the dense solve: a used cone's multiplier enters its contact's stationarity
+    rows with coefficient −1, so those rows eliminate it (a Schur complement on −I, no pivoting needed) and only
+    the cone rows change; unused rays and cones are identity rows and columns.  What is left, N' ≤ n + K
+    unknowns, is solved by Gaussian elimination with partial pivoting.  work: float (≥ N² + 2N); ipos: int
+    (≥ 3N).  Returns False if the reduced matrix is singular.
+    """
+    d = len(dims)
+    n = K * d
+    N = n + K + K * d
+    soc = d > 1
+    rowpos = ipos[:N]
+    colpos = ipos[N : 2 * N]
+    ckeep = ipos[2 * N : 3 * N]
+    for i in range(N):
+        rowpos[i] = 0
+        colpos[i] = 0
+    for k in range(K):
+        for i in range(d):
+            if on[k] and soc:  # eliminated: the stationarity row and the cone's multiplier
+                rowpos[k * d + i] = -1
+                colpos[n + K + k * d + i] = -1
+            else:  # identity row and column
+                rowpos[n + K + k * d + i] = -2
+                colpos[n + K + k * d + i] = -2
+        if not onl[k]:
+            rowpos[n + k] = -2
+            colpos[n + k] = -2
+    nr = 0
+    for i in range(N):
+        if rowpos[i] == 0:
+            rowpos[i] = nr
+            nr += 1
+    # the rays' multipliers first: their columns touch only their contact's rows, so eliminating them first
+    # keeps the fill to those rows and leaves a dense system in dz alone
+    m = 0
+    for jj in range(N):
+        j = n + jj if jj < K else (jj - K if jj < n + K else jj)
+        if colpos[j] == 0:
+            colpos[j] = m
+            ckeep[m] = j
+            m += 1
+    R = work[: nr * nr].reshape(nr, nr)
+    y = work[nr * nr : nr * nr + nr]
+    x = work[nr * nr + nr : nr * nr + nr + N]
+    for i in range(N):
+        if rowpos[i] >= 0:
+            for t in range(nr):
+                R[rowpos[i], t] = M[i, ckeep[t]]
+    for k in range(K if soc else 0):  # R = K_rr + K_re K_er on the cone rows
+        if not on[k]:
+            continue
+        for j in range(d):
+            a = rowpos[n + K + k * d + j]
+            for i in range(d):
+                coef = M[n + K + k * d + j, n + K + k * d + i]
+                if coef != 0.0:
+                    for t in range(nr):
+                        R[a, t] += coef * M[k * d + i, ckeep[t]]
+    if not transpose:
+        for i in range(N):
+            if rowpos[i] >= 0:
+                y[rowpos[i]] = b[i]
+        for k in range(K if soc else 0):
+            if on[k]:
+                for j in range(d):
+                    a = n + K + k * d + j
+                    for i in range(d):
+                        y[rowpos[a]] += M[a, n + K + k * d + i] * b[k * d + i]
+        if not _gauss_solve(R, y):
+            return False
+        for j in range(N):
+            if colpos[j] >= 0:
+                x[j] = y[colpos[j]]
+            elif colpos[j] == -2:
+                x[j] = b[j]
+        for k in range(K if soc else 0):
+            if on[k]:
+                for i in range(d):
+                    t = -b[k * d + i]
+                    for tt in range(nr):
+                        t += M[k * d + i, ckeep[tt]] * y[tt]
+                    x[n + K + k * d + i] = t
+    else:
+        for t in range(nr):
+            y[t] = b[ckeep[t]]
+        for k in range(K if soc else 0):
+            if on[k]:
+                for i in range(d):
+                    ge = b[n + K + k * d + i]
+                    if ge != 0.0:
+                        for t in range(nr):
+                            y[t] += M[k * d + i, ckeep[t]] * ge
+        for i in range(nr):  # transpose in place
+            for j in range(i + 1, nr):
+                t = R[i, j]
+                R[i, j] = R[j, i]
+                R[j, i] = t
+        if not _gauss_solve(R, y):
+            return False
+        for i in range(N):
+            if rowpos[i] >= 0:
+                x[i] = y[rowpos[i]]
+            elif rowpos[i] == -2:
+                x[i] = b[i]
+        for k in range(K if soc else 0):
+            if on[k]:
+                for i in range(d):
+                    t = -b[n + K + k * d + i]
+                    for j in range(d):
+                        a = n + K + k * d + j
+                        t += M[a, n + K + k * d + i] * y[rowpos[a]]
+                    x[k * d + i] = t
+    for i in range(N):
+        b[i] = x[i]
+    return True
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, ipos, use_weak):
     """Newton steps on the exact optimality conditions from the interior-point solution.
 
     The interior-point iterate stays on the central path (s∘λ = τe); at a strictly complementary solution the
@@ -190,6 +322,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
     only if it lowers the exact KKT residual.  Returns the exact KKT residual of the returned point and whether
     the Jacobian was singular (a degenerate solution).
     """
+    d = len(dims)
     K = s_l.shape[0]
     n = K * d
     soc = d > 1
@@ -210,14 +343,15 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
     comp_q = pbuf[o + kd : o + 2 * kd].reshape(K, d)
     sqt = pbuf[o + 2 * kd : o + 3 * kd].reshape(K, d)
     lqt = pbuf[o + 3 * kd : o + 4 * kd].reshape(K, d)
+    work = pbuf[o + 4 * kd :]
     for k in range(K):
         h_l[k] = -low[k] if onl[k] else 0.0
-    res = _kkt_residual(P, c, h_l, on, onl, d, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q)
+    res = _kkt_residual(P, c, h_l, on, onl, dims, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q)
     singular = False
     for _ in range(steps):
         if res <= 1e-14:
             break
-        _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak, M)
+        _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M)
         for i in range(N):
             rhs[i] = -r_z[i] if i < n else 0.0
         for k in range(K):
@@ -226,7 +360,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
             elif onl[k]:  # weakly active: taken as inactive, its multiplier driven to zero
                 rhs[n + k] = -lam_l[k]
             if on[k] and soc:
-                weak = use_weak and _weak_cone(s_q[k], lam_q[k], d)
+                weak = use_weak and _weak_cone(s_q[k], lam_q[k], dims)
                 for i in range(d):
                     row = n + K + k * d + i
                     if weak:
@@ -239,7 +373,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
                         else:
                             lr = lam_q[k, 0] * r_q[k, i] + lam_q[k, i] * r_q[k, 0]
                         rhs[row] = -comp_q[k, i] + lr
-        if not _gauss_solve(M, rhs):
+        if not solve_kkt(M, K, dims, on, onl, rhs, work, ipos, False):
             singular = True
             break
         for i in range(n):
@@ -258,7 +392,7 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
                 else:
                     lqt[k, i] = lam_q[k, i]
                     sqt[k, i] = s_q[k, i]
-        new = _kkt_residual(P, c, h_l, on, onl, d, zt, slt, llt, sqt, lqt, r_z, r_l, r_q, comp_l, comp_q)
+        new = _kkt_residual(P, c, h_l, on, onl, dims, zt, slt, llt, sqt, lqt, r_z, r_l, r_q, comp_l, comp_q)
         if not (new < res):
             break
         res = new
@@ -271,38 +405,36 @@ def _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, us
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf):
+def polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, ipos):
     """Polish; if that does not reach rounding level (singular or slow: a contact may sit exactly at a switch),
     polish again with the weakly active cones taken as inactive (kept only if it lowers the exact residual).
     Returns the exact KKT residual of the returned point."""
-    r, singular = _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, False)
+    r, singular = _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, ipos, False)
     if r > 1e-15:
-        r, singular = _polish(P, c, low, on, onl, d, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, True)
+        r, singular = _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, ipos, True)
     return r
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _adjoint_one(P, s_l, lam_l, s_q, lam_q, on, onl, d, g, M, x, use_weak):
+def _adjoint_one(P, s_l, lam_l, s_q, lam_q, on, onl, dims, g, M, x, work, ipos, use_weak):
     """Kᵀ[u; v] = [g; 0] for one element into x; with ``use_weak`` its weakly active cones (a contact exactly
     at a switch) are taken as inactive, which gives a one-sided derivative.  False if K is singular."""
+    d = len(dims)
     n = s_l.shape[0] * d
     N = M.shape[0]
-    _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak, M)
+    _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M)
     for i in range(N):
         x[i] = g[i] if i < n else 0.0
-        for j in range(i + 1, N):  # transpose in place
-            t = M[i, j]
-            M[i, j] = M[j, i]
-            M[j, i] = t
-    return _gauss_solve(M, x)
+    return solve_kkt(M, s_l.shape[0], dims, on, onl, x, work, ipos, True)
 
 
 @njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
-def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, g):
+def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, dims, g):
     """Solve Kᵀ[u; v] = [g; 0] per element, K the linearised optimality conditions (see ``implicit.py``).
 
     Returns (u: (B, n), v_l: (B, K), ok: (B,) False where K is singular even with weak cones made inactive).
     """
+    d = len(dims)
     B, K = s_l.shape
     n = K * d
     N = n + K + K * d
@@ -313,9 +445,13 @@ def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, g):
     for ch in prange(n_chunks):
         M = np.empty((N, N))
         x = np.empty(N)
+        work = np.empty(N * N + 2 * N)
+        ipos = np.empty(3 * N, dtype=np.int64)
         for b in range(ch, B, n_chunks):
             for use_weak in (False, True):
-                if _adjoint_one(P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], d, g[b], M, x, use_weak):
+                if _adjoint_one(
+                    P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], dims, g[b], M, x, work, ipos, use_weak
+                ):
                     ok[b] = True
                     for i in range(n):
                         u[b, i] = x[i]
@@ -326,11 +462,12 @@ def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, g):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def kkt_matrix_batch(P, s_l, lam_l, s_q, lam_q, on, onl, d, use_weak):
+def kkt_matrix_batch(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak):
     """The matrices K of :func:`_kkt_matrix` for a batch: (B, N, N)."""
+    d = len(dims)
     B, K = s_l.shape
     N = K * d + K + K * d
     out = np.empty((B, N, N))
     for b in range(B):
-        _kkt_matrix(P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], d, use_weak, out[b])
+        _kkt_matrix(P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], dims, use_weak, out[b])
     return out

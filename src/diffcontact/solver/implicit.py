@@ -18,40 +18,81 @@ No backpropagation through the iterations.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
 from diffcontact.solver import exact
+from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.ipm import IPMResult
 
 
+@dataclass
+class ScaledSolution:
+    """A solved batch and its substitution f = γ·T⊙z, T = S·D (see ``problem.py``); everything the backward
+    pass needs, float64, without autograd.  Shapes: B batch, K contacts, n = K·d."""
+
+    A: torch.Tensor  # (B, n, n) the symmetrised A
+    q: torch.Tensor  # (B, n)
+    T: torch.Tensor  # (B, n) S·D on active rows, 0 elsewhere
+    S: torch.Tensor  # (B, n) S on active rows (∂T/∂μ on the tangential rows)
+    gamma: torch.Tensor  # (B,)
+    lower_scale: torch.Tensor  # (B, K) ∂l̂/∂lower: 1/(σγ) on active contacts with a non-negligible bound, else 0
+    slide: torch.Tensor  # (B, K) −∂c_n/∂μ of frictionless sliding contacts (σ‖g_t‖/γ), else 0
+    z: torch.Tensor  # (B, n) solution in z
+    result: IPMResult
+
+
 class ImplicitConeQP(torch.autograd.Function):
-    """Returns ``z_star`` (computed beforehand, without autograd) and differentiates it implicitly."""
+    """f(A, q, mu, lower) of a batch solved beforehand (``ScaledSolution``), differentiated implicitly.
+
+    The backward pass solves the adjoint system once per element and applies the chain rule of the scaling
+    in closed form (matrix–vector products, no (B, n, n) intermediate besides ∂L/∂A itself).
+    """
 
     @staticmethod
-    def forward(P, c, lower, z_star, result: IPMResult):  # noqa: D102
-        return z_star.clone()
+    def forward(A, q, mu, lower, sol: ScaledSolution):  # noqa: D102
+        return (sol.gamma[:, None] * sol.T * sol.z).to(A.dtype)
 
     @staticmethod
     def setup_context(ctx, inputs, output):  # noqa: D102
-        ctx.result = inputs[4]
-        ctx.save_for_backward(output)
+        ctx.sol = inputs[4]
+        ctx.dtypes = tuple(t.dtype for t in inputs[:4])
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_z):  # noqa: D102
-        (z,) = ctx.saved_tensors
-        res: IPMResult = ctx.result
-        B, n = z.shape
-        u, v_l = adjoint_solve(res, grad_z)
-        grad_P = grad_c = grad_l = None
+    def backward(ctx, grad_f):  # noqa: D102
+        sol: ScaledSolution = ctx.sol
+        res = sol.result
+        B, n = sol.z.shape
+        K = res.on.shape[-1]
+        d = n // K
+        gf = grad_f.to(torch.float64)
+        gamma = sol.gamma[:, None]
+        u, v_l = adjoint_solve(res, gamma * sol.T * gf)
+        # ∂L/∂P = −½(u zᵀ + z uᵀ), ∂L/∂c = −u, ∂L/∂l̂ = λ_l v_l in z-space; P = T A T, c = T q / γ, f = γ T z
+        Tu, Tz = sol.T * u, sol.T * sol.z
+        grads = [None] * 5
         if ctx.needs_input_grad[0]:
-            grad_P = -0.5 * (u.unsqueeze(-1) * z.unsqueeze(-2) + z.unsqueeze(-1) * u.unsqueeze(-2))
+            grads[0] = -0.5 * (Tu.unsqueeze(-1) * Tz.unsqueeze(-2) + Tz.unsqueeze(-1) * Tu.unsqueeze(-2))
         if ctx.needs_input_grad[1]:
-            grad_c = -u
-        if ctx.needs_input_grad[2]:
-            grad_l = res.on_l * res.lam_l * v_l
-        return grad_P, grad_c, grad_l, None, None
+            grads[1] = -Tu / gamma
+        if ctx.needs_input_grad[2] and d > 1:
+            A = sol.A
+            gT = (
+                -u * (A @ Tz.unsqueeze(-1)).squeeze(-1)
+                - sol.z * (A @ Tu.unsqueeze(-1)).squeeze(-1)
+                - u * sol.q / gamma
+                + gamma * sol.z * gf
+            )
+            g_mu = (gT * sol.S).view(B, K, d)[..., 1:].sum(-1)
+            grads[2] = g_mu + sol.slide * u.view(B, K, d)[..., 0]
+        elif ctx.needs_input_grad[2]:
+            grads[2] = torch.zeros(B, K, dtype=torch.float64)
+        if ctx.needs_input_grad[3]:
+            grads[3] = res.on_l * res.lam_l * v_l * sol.lower_scale
+        return tuple(g.to(dt) if g is not None else None for g, dt in zip(grads[:4], ctx.dtypes)) + (None,)
 
 
 def adjoint_solve(res: IPMResult, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -65,7 +106,7 @@ def adjoint_solve(res: IPMResult, g: torch.Tensor) -> tuple[torch.Tensor, torch.
         for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l, g.detach().to(torch.float64))
     ]
     d = res.s_q.shape[-1]
-    u, v_l, ok = exact.adjoint_batch(*arrays[:7], d, arrays[7])
+    u, v_l, ok = exact.adjoint_batch(*arrays[:7], contact_dims(d), arrays[7])
     u, v_l, ok = torch.from_numpy(u), torch.from_numpy(v_l), torch.from_numpy(ok)
     if not ok.all():
         u_ls, v_ls = _adjoint_lstsq(res, g, ~ok)
@@ -80,7 +121,7 @@ def _adjoint_lstsq(res: IPMResult, g: torch.Tensor, sel: torch.Tensor) -> tuple[
     parts = [
         np.ascontiguousarray(t[sel].numpy()) for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)
     ]
-    Kmat = torch.from_numpy(exact.kkt_matrix_batch(*parts, d, True))
+    Kmat = torch.from_numpy(exact.kkt_matrix_batch(*parts, contact_dims(d), True))
     rhs = torch.zeros(Kmat.shape[0], Kmat.shape[-1], dtype=Kmat.dtype)
     rhs[:, :n] = g[sel]
     sol = torch.linalg.lstsq(Kmat.mT, rhs.unsqueeze(-1)).solution.squeeze(-1)

@@ -77,7 +77,7 @@ def solve_ipm(
         np.ascontiguousarray(lower.numpy()),
         np.ascontiguousarray(on.numpy()),
         np.ascontiguousarray(on_l.numpy()),
-        d,
+        kernel.contact_dims(d),
         tol,
         acceptable_tol,
         max_iter,

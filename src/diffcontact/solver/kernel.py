@@ -9,6 +9,10 @@ batch pays only for the arithmetic, and each element stops as soon as it has con
 Layout: n = K·d variables; every contact k has a ray (z_n ≥ lower, used when ``on_l[k]``) and, for d ≥ 2, a
 second-order cone ‖z_t‖ ≤ z_n (used when ``on[k]``).  The interior-point method runs to 1e-8; the solution is
 then polished by Newton's method on the exact conditions (``exact.py``).
+
+The contact dimension d is passed as ``dims``, any tuple of length d (``contact_dims(d)``): a tuple's length is
+part of its type, so every d gets its own compiled code in which the loops over a contact's d components are
+unrolled (a quarter faster than a run-time d).
 """
 
 from __future__ import annotations
@@ -18,16 +22,20 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from diffcontact.solver.exact import dual_residual, polish
+from diffcontact.solver.exact import contact_dims, dual_residual, polish  # noqa: F401 (contact_dims re-exported)
 
 CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
+IPM_TOL = 1e-8  # the interior-point method's target before polishing
+
+
 # fast-math without the no-NaN / no-inf assumptions: the kernel tests for both
 _FM = {"contract", "arcp", "nsz", "afn", "reassoc"}
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _soc_max_step(x, dx, d):
+def _soc_max_step(x, dx, dims):
     """Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.  x, dx: (d,)."""
+    d = len(dims)
     a = dx[0] * dx[0]
     b = x[0] * dx[0]
     c0 = x[0] * x[0]
@@ -58,8 +66,9 @@ def _soc_max_step(x, dx, d):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _nt_scaling(s, lam, d, W, Wi, v):
+def _nt_scaling(s, lam, dims, W, Wi, v):
     """NT scaling of one cone: W, Wi (d, d) with W λ = W⁻¹ s (symmetric; W = η(2vvᵀ − J))."""
+    d = len(dims)
     rs = 0.0
     rl = 0.0
     for i in range(1, d):
@@ -92,6 +101,8 @@ def _nt_scaling(s, lam, d, W, Wi, v):
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _cholesky(H, L):
+    """Cholesky factor of H into L: the factor below the diagonal, its transpose above (so that both triangular
+    solves read rows), the reciprocals of its diagonal on the diagonal.  False if H is not positive definite."""
     n = H.shape[0]
     for j in range(n):
         s = H[j, j]
@@ -99,35 +110,38 @@ def _cholesky(H, L):
             s -= L[j, k] * L[j, k]
         if not (s > 0.0):
             return False
-        L[j, j] = math.sqrt(s)
+        inv = 1.0 / math.sqrt(s)
+        L[j, j] = inv
         for i in range(j + 1, n):
             t = H[i, j]
             for k in range(j):
                 t -= L[i, k] * L[j, k]
-            L[i, j] = t / L[j, j]
-        for i in range(j):
-            L[i, j] = 0.0
+            t *= inv
+            L[i, j] = t
+            L[j, i] = t
     return True
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _chol_solve(L, b, x):
+    """Solve H x = b with the factor of :func:`_cholesky`."""
     n = L.shape[0]
     for i in range(n):
         t = b[i]
         for k in range(i):
             t -= L[i, k] * x[k]
-        x[i] = t / L[i, i]
+        x[i] = t * L[i, i]
     for i in range(n - 1, -1, -1):
         t = x[i]
         for k in range(i + 1, n):
-            t -= L[k, i] * x[k]
-        x[i] = t / L[i, i]
+            t -= L[i, k] * x[k]
+        x[i] = t * L[i, i]
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _factor(P, K, d, onl, on, w2l, w2q, H, L):
+def _factor(P, K, dims, onl, on, w2l, w2q, H, L):
     """H = P + GᵀW⁻²G, then its Cholesky factor (with one diagonal shift on failure)."""
+    d = len(dims)
     n = K * d
     for i in range(n):
         for j in range(n):
@@ -150,8 +164,9 @@ def _factor(P, K, d, onl, on, w2l, w2q, H, L):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_out, sq_out, lq_out, buf, trace):
+def _solve_one(P, c, low, on, onl, dims, tol, acc_tol, max_iter, z_out, sl_out, ll_out, sq_out, lq_out, buf, trace):
     """One problem.  Returns (status, iterations, residual); writes the best iterate to the *_out arrays."""
+    d = len(dims)
     K = low.shape[0]
     n = K * d
     soc = d > 1
@@ -201,7 +216,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
         return CONVERGED, 0, 0.0
 
     # ---- initial point: W = I ----
-    _factor(P, K, d, onl, on, ones_k, eye_w2, H, L)
+    _factor(P, K, dims, onl, on, ones_k, eye_w2, H, L)
     for i in range(n):
         rhs[i] = -c[i]
     for k in range(K):
@@ -213,8 +228,8 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
         s_l[k] = h_l[k] + z[k * d] if onl[k] else 1.0
         for i in range(d):
             s_q[k, i] = z[k * d + i] if on[k] else (1.0 if i == 0 else 0.0)
-    shift_s = _worst(s_l, s_q, onl, on, d, 1.0)
-    shift_l = _worst(s_l, s_q, onl, on, d, -1.0)
+    shift_s = _worst(s_l, s_q, onl, on, dims, 1.0)
+    shift_l = _worst(s_l, s_q, onl, on, dims, -1.0)
     add_s = 1.0 + shift_s if shift_s >= -1e-8 else 0.0
     add_l = 1.0 + shift_l if shift_l >= -1e-8 else 0.0
     for k in range(K):
@@ -232,7 +247,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                 s_q[k, i] = 1.0 if i == 0 else 0.0
     if soc:
         for k in range(K):
-            _nt_scaling(s_q[k], lam_q[k], d, Wq[k], Wqi[k], vwork)
+            _nt_scaling(s_q[k], lam_q[k], dims, Wq[k], Wqi[k], vwork)
             for i in range(d):
                 t = 0.0
                 for j in range(d):
@@ -248,7 +263,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
 
     for it in range(max_iter + 1):
         # ---- residuals ----
-        zmax = dual_residual(P, c, z, lam_l, lam_q, on, onl, d, r_z)
+        zmax = dual_residual(P, c, z, lam_l, lam_q, on, onl, dims, r_z)
         pres = 0.0
         gap = 0.0
         for k in range(K):
@@ -307,7 +322,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                         for m in range(d):
                             t += Wqi[k, i, m] * Wqi[k, j, m]
                         w2q[k, i, j] = t
-        if not _factor(P, K, d, onl, on, w2l, w2q, H, L):
+        if not _factor(P, K, dims, onl, on, w2l, w2q, H, L):
             status = NUMERICAL
             break
 
@@ -317,15 +332,15 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                 for k in range(K):
                     rc_l[k] = -lt_l[k] * lt_l[k]
                     if soc:
-                        _jprod(lt_q[k], lt_q[k], d, tmp)
+                        _jprod(lt_q[k], lt_q[k], dims, tmp)
                         for i in range(d):
                             rc_q[k, i] = -tmp[i]
             else:
                 for k in range(K):
                     rc_l[k] = -lt_l[k] * lt_l[k] + tau - A_dsl[k] * A_dll[k]
                     if soc:
-                        _jprod(lt_q[k], lt_q[k], d, tmp)
-                        _jprod(A_dsq[k], A_dlq[k], d, tmp2)
+                        _jprod(lt_q[k], lt_q[k], dims, tmp)
+                        _jprod(A_dsq[k], A_dlq[k], dims, tmp2)
                         for i in range(d):
                             rc_q[k, i] = -tmp[i] - tmp2[i] + (tau if i == 0 else 0.0)
             # first solve: b = −r
@@ -339,7 +354,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                 P,
                 L,
                 K,
-                d,
+                dims,
                 onl,
                 on,
                 s_l,
@@ -391,7 +406,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                         b_z[k * d + i] += dlq
                         e_q[k, i] = -r_q[k, i] + dz[k * d + i] - dsq
                         tmp2[i] = dst_q[k, i] + dlt_q[k, i]
-                    _jprod(lt_q[k], tmp2, d, tmp)
+                    _jprod(lt_q[k], tmp2, dims, tmp)
                     for i in range(d):
                         ec_q[k, i] = rc_q[k, i] - tmp[i]
                 else:
@@ -412,7 +427,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                     P,
                     L,
                     K,
-                    d,
+                    dims,
                     onl,
                     on,
                     s_l,
@@ -461,8 +476,8 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                     if A_dll[k] < 0:
                         alpha = min(alpha, -lam_l[k] / A_dll[k])
                 if on[k] and soc:
-                    alpha = min(alpha, _soc_max_step(lt_q[k], A_dsq[k], d))
-                    alpha = min(alpha, _soc_max_step(lt_q[k], A_dlq[k], d))
+                    alpha = min(alpha, _soc_max_step(lt_q[k], A_dsq[k], dims))
+                    alpha = min(alpha, _soc_max_step(lt_q[k], A_dlq[k], dims))
             if phase == 0:
                 a_aff = min(alpha, 1.0)
                 gap_aff = 0.0
@@ -498,7 +513,7 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
                     lam_q[k, i] += step * dl
                     tmp[i] = lt_q[k, i] + step * A_dsq[k, i]  # W⁻ᵀs⁺
                     tmp2[i] = lt_q[k, i] + step * A_dlq[k, i]  # Wλ⁺
-                _nt_scaling(tmp, tmp2, d, Ws, Wsi, vwork)
+                _nt_scaling(tmp, tmp2, dims, Ws, Wsi, vwork)
                 for i in range(d):
                     t = 0.0
                     for j in range(d):
@@ -525,8 +540,9 @@ def _solve_one(P, c, low, on, onl, d, tol, acc_tol, max_iter, z_out, sl_out, ll_
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _worst(s_l, s_q, onl, on, d, sign):
+def _worst(s_l, s_q, onl, on, dims, sign):
     """max over the cones of −(smallest eigenvalue of sign·s)."""
+    d = len(dims)
     worst = -np.inf
     for k in range(s_l.shape[0]):
         if onl[k]:
@@ -540,7 +556,8 @@ def _worst(s_l, s_q, onl, on, d, sign):
 
 
 @njit(cache=True, inline="always", fastmath=_FM, error_model="numpy")
-def _jprod(x, y, d, out):
+def _jprod(x, y, dims, out):
+    d = len(dims)
     t = 0.0
     for i in range(d):
         t += x[i] * y[i]
@@ -554,7 +571,7 @@ def _newton(
     P,
     L,
     K,
-    d,
+    dims,
     onl,
     on,
     s_l,
@@ -582,6 +599,7 @@ def _newton(
     rhs,
 ):
     """Solve P Δz + GᵀΔλ = b_z, GΔz + Δs = b_s, λ̃∘(W⁻ᵀΔs + WΔλ) = rc (see ipm.py)."""
+    d = len(dims)
     n = K * d
     soc = d > 1
     for i in range(n):
@@ -643,8 +661,9 @@ def _newton(
 
 
 @njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
-def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, trace):
+def solve_batch(P, c, low, on, onl, dims, tol, acc_tol, max_iter, polish_steps, trace):
     """Solve every batch element.  P: (B, n, n); c: (B, n); low, on, onl: (B, K).  float64 / bool."""
+    d = len(dims)
     B, K = low.shape
     n = K * d
     z = np.zeros((B, n))
@@ -661,21 +680,22 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, tra
     for ch in prange(n_chunks):
         buf = np.empty(size)
         pM = np.empty((N, N))
-        pbuf = np.empty(N + 5 * K + 2 * n + 4 * K * d)
+        pbuf = np.empty(N + 5 * K + 2 * n + 4 * K * d + N * N + 2 * N)
+        ipos = np.empty(3 * N, dtype=np.int64)
         for b in range(ch, B, n_chunks):
             # With polishing, the interior-point method only needs to identify the solution's structure: it
             # stops at 1e-8 and Newton's method on the exact conditions does the rest.  Where that fails (a
             # degenerate solution) the method is run again to the full tolerance.
             passes = 2 if polish_steps > 0 and tol < 1e-8 else 1
             for attempt in range(passes):
-                tol_ipm = max(tol, 1e-8) if (polish_steps > 0 and attempt == 0) else tol
+                tol_ipm = max(tol, IPM_TOL) if (polish_steps > 0 and attempt == 0) else tol
                 st, it, r = _solve_one(
                     P[b],
                     c[b],
                     low[b],
                     on[b],
                     onl[b],
-                    d,
+                    dims,
                     tol_ipm,
                     acc_tol,
                     max_iter,
@@ -694,7 +714,7 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, tra
                         low[b],
                         on[b],
                         onl[b],
-                        d,
+                        dims,
                         z[b],
                         s_l[b],
                         lam_l[b],
@@ -703,6 +723,7 @@ def solve_batch(P, c, low, on, onl, d, tol, acc_tol, max_iter, polish_steps, tra
                         polish_steps,
                         pM,
                         pbuf,
+                        ipos,
                     )
                 if st > MAX_ITER:  # numerical trouble or unbounded: reported as such
                     break
