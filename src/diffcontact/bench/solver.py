@@ -58,8 +58,10 @@ def run_solver_benchmark(
         f"{torch.get_num_threads()} threads; medians of {repeats} runs after one warm-up; forward+backward; "
         f"reference: cvxpylayers/diffcp/SCS eps {REFERENCE_EPS:g}"
     )
-    header = "| d | K | B | ours µs/problem | reference µs/problem | speed-up | max abs diff |"
-    lines = [header, "|---|---|---|---|---|---|---|"]
+    header = (
+        "| d | K | B | ours µs/problem | reference µs/problem | speed-up | max abs diff | max diff / max(1, ‖f‖∞) |"
+    )
+    lines = [header, "|---|---|---|---|---|---|---|---|"]
     print(header)
     rows = []
     gen = torch.Generator().manual_seed(seed)
@@ -74,11 +76,16 @@ def run_solver_benchmark(
                     t_ref, f_ref = _time_fwd_bwd(reference_solver, A[:Br], q[:Br], mu[:Br], lower[:Br], repeats=1)
                     row["ref_us"] = 1e6 * t_ref / Br
                     row["speedup"] = row["ref_us"] / row["ours_us"]
-                    row["diff"] = float((f_ours[:Br] - f_ref).abs().max())
+                    err = (f_ours[:Br] - f_ref).abs().amax(-1)
+                    row["diff"] = float(err.max())
+                    # relative to the size of each problem's solution, at least 1 (the reference's own error scales
+                    # with it)
+                    row["rel_diff"] = float((err / f_ref.abs().amax(-1).clamp_min(1.0)).max())
                 rows.append(row)
                 line = (
                     f"| {d} | {K} | {B} | {row['ours_us']:.1f} | {row.get('ref_us', float('nan')):.1f} | "
-                    f"{row.get('speedup', float('nan')):.0f}× | {row.get('diff', float('nan')):.1e} |"
+                    f"{row.get('speedup', float('nan')):.0f}× | {row.get('diff', float('nan')):.1e} | "
+                    f"{row.get('rel_diff', float('nan')):.1e} |"
                 )
                 print(line, flush=True)
                 lines.append(line)

@@ -154,53 +154,90 @@ def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _gauss_solve(M, b):
-    """Solve M x = b in place (b becomes x) by Gaussian elimination with partial pivoting; False if singular."""
-    N = M.shape[0]
+def _lu_factor(R, piv):
+    """LU factorisation with partial pivoting in place: the unit lower factor below the diagonal, the upper one
+    above it, the reciprocals of its diagonal on the diagonal; row i was swapped with piv[i] at step i.  False
+    if R is singular (a pivot below 1e-13 of its largest entry)."""
+    N = R.shape[0]
     scale = 0.0
     for i in range(N):
         for j in range(N):
-            scale = max(scale, abs(M[i, j]))
+            scale = max(scale, abs(R[i, j]))
     for col in range(N):
-        piv = col
-        best = abs(M[col, col])
+        p = col
+        best = abs(R[col, col])
         for r in range(col + 1, N):
-            if abs(M[r, col]) > best:
-                best = abs(M[r, col])
-                piv = r
+            if abs(R[r, col]) > best:
+                best = abs(R[r, col])
+                p = r
         if not (best > 1e-13 * scale):
             return False
-        if piv != col:
+        piv[col] = p
+        if p != col:
             for j in range(N):
-                t = M[col, j]
-                M[col, j] = M[piv, j]
-                M[piv, j] = t
-            t = b[col]
-            b[col] = b[piv]
-            b[piv] = t
+                t = R[col, j]
+                R[col, j] = R[p, j]
+                R[p, j] = t
+        inv = 1.0 / R[col, col]
         for r in range(col + 1, N):
-            f = M[r, col] / M[col, col]
+            f = R[r, col] * inv
+            R[r, col] = f
             if f != 0.0:
-                for j in range(col, N):
-                    M[r, j] -= f * M[col, j]
-                b[r] -= f * b[col]
-    for i in range(N - 1, -1, -1):
-        t = b[i]
-        for j in range(i + 1, N):
-            t -= M[i, j] * b[j]
-        b[i] = t / M[i, i]
+                for j in range(col + 1, N):
+                    R[r, j] -= f * R[col, j]
+        R[col, col] = inv
     return True
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def solve_kkt(M, K, dims, on, onl, b, work, ipos, transpose):
-    """Solve M x = b (or Mᵀ x = b) for the matrix of :func:`_kkt_matrix`; b is overwritten with x.
+def _lu_solve(R, piv, b, transpose):
+    """Solve R x = b (or Rᵀ x = b) in place with the factors of :func:`_lu_factor`."""
+    N = R.shape[0]
+    if not transpose:
+        for i in range(N):
+            p = piv[i]
+            if p != i:
+                t = b[i]
+                b[i] = b[p]
+                b[p] = t
+        for i in range(N):
+            t = b[i]
+            for k in range(i):
+                t -= R[i, k] * b[k]
+            b[i] = t
+        for i in range(N - 1, -1, -1):
+            t = b[i]
+            for j in range(i + 1, N):
+                t -= R[i, j] * b[j]
+            b[i] = t * R[i, i]
+    else:  # Rᵀ = Uᵀ Lᵀ P
+        for i in range(N):
+            t = b[i]
+            for k in range(i):
+                t -= R[k, i] * b[k]
+            b[i] = t * R[i, i]
+        for i in range(N - 1, -1, -1):
+            t = b[i]
+            for k in range(i + 1, N):
+                t -= R[k, i] * b[k]
+            b[i] = t
+        for i in range(N - 1, -1, -1):
+            p = piv[i]
+            if p != i:
+                t = b[i]
+                b[i] = b[p]
+                b[p] = t
 
-    Exact block elimination before the dense solve: a used cone's multiplier enters its contact's stationarity
-    rows with coefficient −1, so those rows eliminate it (a Schur complement on −I, no pivoting needed) and only
-    the cone rows change; unused rays and cones are identity rows and columns.  What is left, N' ≤ n + K
-    unknowns, is solved by Gaussian elimination with partial pivoting.  work: float (≥ N² + 2N); ipos: int
-    (≥ 3N).  Returns False if the reduced matrix is singular.
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def factor_kkt(M, K, dims, on, onl, work, ipos):
+    """Factorise the matrix M of :func:`_kkt_matrix` for :func:`solve_factored` (M must stay unchanged).
+
+    Exact block elimination before the dense factorisation: a used cone's multiplier enters its contact's
+    stationarity rows with coefficient −1, so those rows eliminate it (a Schur complement on −I, no pivoting
+    needed) and only the cone rows change; unused rays and cones are identity rows and columns.  What is left,
+    N' ≤ n + K unknowns, is factorised by LU with partial pivoting.  work: float (≥ N² + 2N); ipos: int (≥ 4N).
+    Returns N', or −1 if the reduced matrix is singular.
     """
     d = len(dims)
     n = K * d
@@ -238,8 +275,6 @@ def solve_kkt(M, K, dims, on, onl, b, work, ipos, transpose):
             ckeep[m] = j
             m += 1
     R = work[: nr * nr].reshape(nr, nr)
-    y = work[nr * nr : nr * nr + nr]
-    x = work[nr * nr + nr : nr * nr + nr + N]
     for i in range(N):
         if rowpos[i] >= 0:
             for t in range(nr):
@@ -254,6 +289,25 @@ def solve_kkt(M, K, dims, on, onl, b, work, ipos, transpose):
                 if coef != 0.0:
                     for t in range(nr):
                         R[a, t] += coef * M[k * d + i, ckeep[t]]
+    if not _lu_factor(R, ipos[3 * N : 3 * N + nr]):
+        return -1
+    return nr
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def solve_factored(M, K, dims, on, onl, b, work, ipos, nr, transpose):
+    """Solve M x = b (or Mᵀ x = b) with the factors of :func:`factor_kkt` (which returned nr); b becomes x."""
+    d = len(dims)
+    n = K * d
+    N = n + K + K * d
+    soc = d > 1
+    rowpos = ipos[:N]
+    colpos = ipos[N : 2 * N]
+    ckeep = ipos[2 * N : 3 * N]
+    piv = ipos[3 * N : 3 * N + nr]
+    R = work[: nr * nr].reshape(nr, nr)
+    y = work[nr * nr : nr * nr + nr]
+    x = work[nr * nr + nr : nr * nr + nr + N]
     if not transpose:
         for i in range(N):
             if rowpos[i] >= 0:
@@ -264,8 +318,7 @@ def solve_kkt(M, K, dims, on, onl, b, work, ipos, transpose):
                     a = n + K + k * d + j
                     for i in range(d):
                         y[rowpos[a]] += M[a, n + K + k * d + i] * b[k * d + i]
-        if not _gauss_solve(R, y):
-            return False
+        _lu_solve(R, piv, y, False)
         for j in range(N):
             if colpos[j] >= 0:
                 x[j] = y[colpos[j]]
@@ -288,13 +341,7 @@ def solve_kkt(M, K, dims, on, onl, b, work, ipos, transpose):
                     if ge != 0.0:
                         for t in range(nr):
                             y[t] += M[k * d + i, ckeep[t]] * ge
-        for i in range(nr):  # transpose in place
-            for j in range(i + 1, nr):
-                t = R[i, j]
-                R[i, j] = R[j, i]
-                R[j, i] = t
-        if not _gauss_solve(R, y):
-            return False
+        _lu_solve(R, piv, y, True)
         for i in range(N):
             if rowpos[i] >= 0:
                 x[i] = y[rowpos[i]]
@@ -310,12 +357,22 @@ def solve_kkt(M, K, dims, on, onl, b, work, ipos, transpose):
                     x[k * d + i] = t
     for i in range(N):
         b[i] = x[i]
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def solve_kkt(M, K, dims, on, onl, b, work, ipos, transpose):
+    """Factorise (:func:`factor_kkt`) and solve M x = b (or Mᵀ x = b); b becomes x.  False if singular."""
+    nr = factor_kkt(M, K, dims, on, onl, work, ipos)
+    if nr < 0:
+        return False
+    solve_factored(M, K, dims, on, onl, b, work, ipos, nr, transpose)
     return True
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, ipos, use_weak):
-    """Newton steps on the exact optimality conditions from the interior-point solution.
+    """Newton steps (at most ``steps`` factorisations) on the exact optimality conditions from the
+    interior-point solution.
 
     The interior-point iterate stays on the central path (s∘λ = τe); at a strictly complementary solution the
     exact conditions have a nonsingular Jacobian and Newton converges quadratically from it.  A step is kept
@@ -348,10 +405,21 @@ def _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf,
         h_l[k] = -low[k] if onl[k] else 0.0
     res = _kkt_residual(P, c, h_l, on, onl, dims, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q)
     singular = False
-    for _ in range(steps):
+    nr = -1  # size of the factorisation at hand (from an earlier point), −1 if none
+    n_factor = 0
+    for _ in range(4 * steps):
         if res <= 1e-14:
             break
-        _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M)
+        fresh = nr < 0
+        if fresh:
+            if n_factor == steps:
+                break
+            n_factor += 1
+            _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M)
+            nr = factor_kkt(M, K, dims, on, onl, work, ipos)
+            if nr < 0:
+                singular = True
+                break
         for i in range(N):
             rhs[i] = -r_z[i] if i < n else 0.0
         for k in range(K):
@@ -373,9 +441,11 @@ def _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf,
                         else:
                             lr = lam_q[k, 0] * r_q[k, i] + lam_q[k, i] * r_q[k, 0]
                         rhs[row] = -comp_q[k, i] + lr
-        if not solve_kkt(M, K, dims, on, onl, rhs, work, ipos, False):
-            singular = True
-            break
+        # after a Newton step the factorisation is reused (a chord step: from a point this close the Jacobian
+        # has barely changed, so the error still falls by orders of magnitude, at the cost of two triangular
+        # solves); where it falls by less (a degenerate solution, where Newton itself converges linearly) the
+        # next step refactorises at the current point
+        solve_factored(M, K, dims, on, onl, rhs, work, ipos, nr, False)
         for i in range(n):
             zt[i] = z[i] + rhs[i]
         for k in range(K):
@@ -394,7 +464,13 @@ def _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf,
                     sqt[k, i] = s_q[k, i]
         new = _kkt_residual(P, c, h_l, on, onl, dims, zt, slt, llt, sqt, lqt, r_z, r_l, r_q, comp_l, comp_q)
         if not (new < res):
-            break
+            if fresh:
+                break
+            nr = -1  # (and the residuals back at the current point)
+            _kkt_residual(P, c, h_l, on, onl, dims, z, s_l, lam_l, s_q, lam_q, r_z, r_l, r_q, comp_l, comp_q)
+            continue
+        if not fresh and new > 1e-2 * res:
+            nr = -1
         res = new
         z[:] = zt
         s_l[:] = slt
@@ -446,7 +522,7 @@ def adjoint_batch(P, s_l, lam_l, s_q, lam_q, on, onl, dims, g):
         M = np.empty((N, N))
         x = np.empty(N)
         work = np.empty(N * N + 2 * N)
-        ipos = np.empty(3 * N, dtype=np.int64)
+        ipos = np.empty(4 * N, dtype=np.int64)
         for b in range(ch, B, n_chunks):
             for use_weak in (False, True):
                 if _adjoint_one(

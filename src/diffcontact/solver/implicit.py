@@ -13,7 +13,9 @@ solution map (a sliding contact's direction turning with the data included).  Fo
 
     ∂L/∂c = −u,   ∂L/∂P = −½(u zᵀ + z uᵀ),   ∂L/∂h = −L(λ) v   (h = −l on the rays: ∂L/∂l = λ_l·v_l).
 
-No backpropagation through the iterations.
+The chain rule through the substitution f = γ·T⊙z (P = T A T, c = T q/γ, T = S·D(μ)) is applied in closed
+form: ∂L/∂A = −½(T u (T z)ᵀ + T z (T u)ᵀ) and matrix–vector products for ∂L/∂T.  No backpropagation through the
+iterations.
 """
 
 from __future__ import annotations

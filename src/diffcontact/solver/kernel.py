@@ -18,11 +18,26 @@ unrolled (a quarter faster than a run-time d).
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 from numba import njit, prange
 
+from diffcontact.solver import exact
 from diffcontact.solver.exact import contact_dims, dual_residual, polish  # noqa: F401 (contact_dims re-exported)
+
+
+def _refresh_stale_cache() -> None:
+    """numba's on-disk cache checks only the time stamp of a function's own file, but this module's functions
+    have ``exact.py``'s compiled in: when that file is newer, touch this one so that the cache is rebuilt."""
+    try:
+        if os.path.getmtime(exact.__file__) > os.path.getmtime(__file__):
+            os.utime(__file__)
+    except OSError:  # a read-only installation: its files are not edited either
+        pass
+
+
+_refresh_stale_cache()
 
 CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
 IPM_TOL = 1e-8  # the interior-point method's target before polishing
@@ -681,7 +696,7 @@ def solve_batch(P, c, low, on, onl, dims, tol, acc_tol, max_iter, polish_steps, 
         buf = np.empty(size)
         pM = np.empty((N, N))
         pbuf = np.empty(N + 5 * K + 2 * n + 4 * K * d + N * N + 2 * N)
-        ipos = np.empty(3 * N, dtype=np.int64)
+        ipos = np.empty(4 * N, dtype=np.int64)
         for b in range(ch, B, n_chunks):
             # With polishing, the interior-point method only needs to identify the solution's structure: it
             # stops at 1e-8 and Newton's method on the exact conditions does the rest.  Where that fails (a
