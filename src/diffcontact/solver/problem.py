@@ -16,10 +16,12 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Literal
 
+import numpy as np
 import torch
 
 from diffcontact.errors import ContactSolverError
-from diffcontact.solver import ipm
+from diffcontact.solver import ipm, scaling
+from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.implicit import ImplicitConeQP, ScaledSolution
 
 
@@ -83,9 +85,11 @@ def check_problem(A, q, mu, lower=None, active=None):
     elif tuple(active.shape) != (B, K) or active.dtype != torch.bool:
         raise ValueError(f"active must be a bool tensor of shape (B, K) = {(B, K)}")
     for name, t in (("A", A), ("q", q), ("mu", mu), ("lower", lower)):
-        if not bool(torch.isfinite(t.detach()).all()):
+        # (a finite sum is the fast test; an overflowing one falls through to the exact test)
+        if not bool(torch.isfinite(t.detach().sum())):
             bad = ~torch.isfinite(t.detach()).reshape(B, -1).all(-1)
-            raise ValueError(f"{name} has non-finite values in batch elements {_first(bad)}")
+            if bad.any():
+                raise ValueError(f"{name} has non-finite values in batch elements {_first(bad)}")
     for name, t in (("mu", mu), ("lower", lower)):
         if bool((t.detach() < 0).any()):
             raise ValueError(f"{name} must be >= 0; negative in batch elements {_first((t.detach() < 0).any(-1))}")
@@ -151,80 +155,44 @@ def solve_cone_qp(
 
 
 def _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter) -> tuple[ScaledSolution, ipm.IPMResult]:
-    """Scale (f = γ·S·D·z, see the module docstring), solve in z, and collect what the backward pass needs."""
-    B, n = q.shape
-    K = n // d
-    A64 = A.to(torch.float64)
-    A64 = 0.5 * (A64 + A64.mT)
-    q64, mu64, low64 = q.to(torch.float64), mu.to(torch.float64), lower.to(torch.float64)
+    """Scale (f = γ·S·D·z, see ``scaling.py``), solve in z, and collect what the backward pass needs."""
+    B = q.shape[0]
+    arrays = scaling.scale_batch(
+        *(np.ascontiguousarray(t.detach().to(torch.float64).numpy()) for t in (A, q, mu, lower)),
+        np.ascontiguousarray(active.numpy()),
+        contact_dims(d),
+    )
+    A64, P, c, l_hat, T, S, gamma, sigma, low64, lower_scale, on_q, on_l, zero_mu = map(torch.from_numpy, arrays)
+    q64 = q.detach().to(torch.float64)
     onf = active.to(torch.float64)
-    on_rows = onf.repeat_interleave(d, dim=-1)  # (B, n)
-    if d > 1:
-        D = torch.cat([torch.ones_like(mu64).unsqueeze(-1), mu64.unsqueeze(-1).expand(B, K, d - 1)], -1)
-        D = D.reshape(B, n)
-    else:
-        D = torch.ones_like(q64)
-    a_nn = A64.diagonal(dim1=-2, dim2=-1).view(B, K, d)[..., 0] * onf
-    a_max = a_nn.amax(-1, keepdim=True)
-    a_ref = torch.where(a_max > 0, a_max, torch.ones_like(a_max))
-    sigma = torch.where(a_nn > 1e-12 * a_ref, a_nn, a_ref).rsqrt()  # (B, K)
-    S = sigma.repeat_interleave(d, dim=-1) * on_rows  # zero on inactive rows
-    # γ: the size of the solution, estimated contact by contact as max(lower, −q_n/A_nn) in scaled units
-    # (the whole data scale when every contact separates and the solution is zero)
-    sq = (S * q64).view(B, K, d)[..., 0]
-    estimate = (torch.maximum(low64 / sigma, -sq) * onf).amax(-1)
-    c_abs = (S * D * q64).abs().amax(-1)
-    # (never far below the data scale: a lower bound that is tiny next to the velocities would otherwise
-    # blow the linear term up)
-    gamma = torch.where(estimate > 0, torch.maximum(estimate, 1e-3 * c_abs), c_abs)
-    gamma = torch.where(gamma > 0, gamma, torch.ones_like(gamma))
-    # lower bounds below 1e-12 of the solution's scale (e·f_n of a contact that barely touched) are zero: a
-    # positive bound at the cone's apex only makes the problem degenerate
-    keep = (low64 >= 1e-12 * sigma * gamma[:, None]) & active
-    low64 = torch.where(keep, low64, torch.zeros_like(low64))
-    T = S * D
-    # A frictionless contact (μ = 0) has no cone: its tangential z is pinned to 0 by an identity block and only
-    # the ray z_n ≥ lower remains.  That keeps the optimality conditions nonsingular (for the polishing Newton
-    # steps and the backward pass) instead of leaving z_t free inside a cone.
-    zero_mu = active & (mu64 == 0) if d > 1 else torch.zeros_like(active)
-    on_q = active & ~zero_mu if d > 1 else torch.zeros_like(active)
-    # (with a zero lower bound the ray z_n ≥ 0 is implied by the cone; dropping it keeps the multipliers unique
-    # at separating contacts)
-    on_l = active & ((low64 > 0) | zero_mu) if d > 1 else active
-    P = T.unsqueeze(-1) * A64 * T.unsqueeze(-2)
-    identity = (1.0 - on_rows).view(B, K, d)
-    if d > 1:
-        identity[..., 1:] += zero_mu.to(torch.float64)[..., None]
-    P.diagonal(dim1=-2, dim2=-1).add_(identity.view(B, n))  # identity on inactive and pinned variables
 
     def data(gamma):
         return T * q64 / gamma[:, None], low64 / (sigma * gamma[:, None]) * onf
 
-    def run(gamma, sel=None):
-        c, l_hat = data(gamma)
+    def run(gamma, sel=None, c=c, l_hat=l_hat):
         args = (P, c, l_hat, on_q, on_l)
         if sel is not None:
             args = tuple(a[sel] for a in args)
-        res = ipm.solve_ipm(*args, d, tol=tol, acceptable_tol=acceptable_tol, max_iter=max_iter)
-        return c, res
+        return ipm.solve_ipm(*args, d, tol=tol, acceptable_tol=acceptable_tol, max_iter=max_iter)
 
-    c, result = run(gamma)
+    result = run(gamma)
     # A badly estimated solution size (nearly singular A) can stall the method: solve those elements once more
     # with the scale of the stalled iterate.
     retry = (result.status == Status.MAX_ITER) & torch.isfinite(result.z).all(-1)
     if retry.any():
         gamma2 = gamma.clone()
         gamma2[retry] = gamma[retry] * result.z[retry].abs().amax(-1).clamp_min(1e-6)
-        _, res2 = run(gamma2, retry)
+        res2 = run(gamma2, retry, *data(gamma2))
         better = res2.status < result.status[retry]
         idx = retry.nonzero().flatten()[better]
         if len(idx):
             gamma = torch.where(torch.isin(torch.arange(B), idx), gamma2, gamma)
             for name in ("z", "status", "iterations", "residual", "s_l", "lam_l", "s_q", "lam_q"):
                 getattr(result, name)[idx] = getattr(res2, name)[better]
+            lower_scale = (lower_scale > 0) / (sigma * gamma[:, None])
     failed = result.status >= Status.MAX_ITER
     z = torch.where(failed[:, None], torch.zeros_like(result.z), result.z)
-    slide = torch.zeros_like(mu64)
+    slide = torch.zeros_like(sigma)
     if d > 1 and zero_mu.any():
         z, speed = _frictionless_slide_limit(z, A64, q64, T, gamma, zero_mu, d)
         # At μ = 0⁺ a sliding contact's cone multiplier is its sliding speed ‖g_t‖ and adds μ‖g_t‖ to the normal
@@ -236,7 +204,7 @@ def _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter) -> tuple[S
         T=T,
         S=S,
         gamma=gamma,
-        lower_scale=keep / (sigma * gamma[:, None]),
+        lower_scale=lower_scale,
         slide=slide,
         z=z,
         result=result,
