@@ -396,8 +396,9 @@ def _solve_one(P, c, low, on, onl, dims, tol, acc_tol, max_iter, z_out, sl_out, 
                 tmp,
                 nrhs,
             )
-            refine = gap < 1e-3 * zmax
-            # refinement (near the solution, where W is badly conditioned): residuals of the unscaled equations
+            refine = gap < IPM_TOL * zmax
+            # refinement (near the solution, where W is badly conditioned; past the first stage's target only):
+            # residuals of the unscaled equations
             for i in range(n if refine else 0):
                 t = -r_z[i]
                 for j in range(n):
