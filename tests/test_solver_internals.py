@@ -1,0 +1,106 @@
+"""The compiled pieces of the solver against plain numpy: the reduced KKT solves and the scaling (float64)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from solver_oracle import random_instance
+
+from diffcontact.solver import exact, ipm, scaling
+from diffcontact.solver.exact import contact_dims
+
+
+def _solved_batch(K, d, seed):
+    """A solved standard-form batch with frictionless, inactive and lower-bounded contacts mixed in."""
+    gen = torch.Generator().manual_seed(seed)
+    B = 12
+    A, q, mu, lower = random_instance(gen, B, K, d)
+    mu[:3] = 0.0
+    active = torch.rand(B, K, generator=gen) > 0.2
+    arrays = scaling.scale_batch(A.numpy(), q.numpy(), mu.numpy(), lower.numpy(), active.numpy(), contact_dims(d))
+    _, P, c, l_hat, *_, on_q, on_l, _ = (torch.from_numpy(a) for a in arrays)
+    return ipm.solve_ipm(P, c, l_hat, on_q, on_l, d)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+@pytest.mark.parametrize("transpose", [False, True])
+def test_reduced_kkt_solve_matches_dense(d, transpose):
+    res = _solved_batch(4, d, seed=7 * d)
+    B, K = res.on.shape
+    N = K * d + K + K * d
+    rng = np.random.default_rng(d)
+    checked = 0
+    for b in range(B):
+        M = np.empty((N, N))
+        args = [t[b].numpy() for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)]
+        exact._kkt_matrix(*args, contact_dims(d), False, M)
+        if np.linalg.cond(M) > 1e10:  # (an exactly degenerate element; the solver handles it separately)
+            continue
+        rhs = rng.standard_normal(N)
+        x = rhs.copy()
+        work, ipos = np.empty(N * N + 2 * N), np.empty(4 * N, dtype=np.int64)
+        ok = exact.solve_kkt(M, K, contact_dims(d), args[5], args[6], x, work, ipos, transpose)
+        assert ok
+        ref = np.linalg.solve(M.T if transpose else M, rhs)
+        assert np.abs(x - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max())
+        checked += 1
+    assert checked >= B // 2
+
+
+def _scaling_reference(A, q, mu, lower, active, d):
+    """The substitution written out with numpy, one element at a time."""
+    B, K = mu.shape
+    n = K * d
+    out = {k: [] for k in ("P", "c", "l_hat", "T", "gamma", "lower_scale", "on_q", "on_l")}
+    for b in range(B):
+        As = 0.5 * (A[b] + A[b].T)
+        on = active[b]
+        a_nn = np.where(on, np.diag(As)[::d], 0.0)
+        a_ref = a_nn.max() if a_nn.max() > 0 else 1.0
+        sigma = 1.0 / np.sqrt(np.where(a_nn > 1e-12 * a_ref, a_nn, a_ref))
+        D = np.ones((K, d))
+        D[:, 1:] = mu[b][:, None]
+        S = np.repeat(sigma * on, d)
+        T = S * D.reshape(n)
+        estimate = (np.maximum(lower[b] / sigma, -S[::d] * q[b][::d]) * on).max()
+        c_abs = np.abs(T * q[b]).max()
+        gamma = max(estimate, 1e-3 * c_abs) if estimate > 0 else c_abs
+        gamma = gamma if gamma > 0 else 1.0
+        keep = on & (lower[b] >= 1e-12 * sigma * gamma)
+        low = np.where(keep, lower[b], 0.0)
+        zero_mu = on & (mu[b] == 0) if d > 1 else np.zeros(K, bool)
+        P = T[:, None] * As * T[None, :]
+        pinned = np.zeros((K, d))
+        pinned[:, 1:] = zero_mu[:, None]
+        P += np.diag(np.repeat(1.0 - on, d) + pinned.reshape(n))
+        out["P"].append(P)
+        out["c"].append(T * q[b] / gamma)
+        out["l_hat"].append(low / (sigma * gamma) * on)
+        out["T"].append(T)
+        out["gamma"].append(gamma)
+        out["lower_scale"].append(keep / (sigma * gamma))
+        out["on_q"].append(on & ~zero_mu if d > 1 else np.zeros(K, bool))
+        out["on_l"].append(on & ((low > 0) | zero_mu) if d > 1 else on)
+    return {k: np.array(v) for k, v in out.items()}
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_scaling_matches_its_formulas(d):
+    gen = torch.Generator().manual_seed(40 + d)
+    A, q, mu, lower = (t.numpy() for t in random_instance(gen, 20, 3, d))
+    mu[:4, 0] = 0.0  # frictionless contacts
+    lower[4:8, 1] = 1e-15  # negligible lower bounds
+    A[8:10, :d, :] = 0.0  # a contact with no inverse inertia
+    A[8:10, :, :d] = 0.0
+    active = np.random.default_rng(d).random((20, 3)) > 0.25
+    active[10] = False  # all contacts inactive
+    got = scaling.scale_batch(A, q, mu, lower, active, contact_dims(d))
+    names = ("A", "P", "c", "l_hat", "T", "S", "gamma", "sigma", "lower_kept", "lower_scale", "on_q", "on_l", "zero_mu")
+    got = dict(zip(names, got))
+    ref = _scaling_reference(A, q, mu, lower, active, d)
+    for key, value in ref.items():
+        if value.dtype == bool:
+            assert (got[key] == value).all(), key
+        else:
+            np.testing.assert_allclose(got[key], value, rtol=1e-13, atol=1e-300, err_msg=key)
