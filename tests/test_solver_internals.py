@@ -96,7 +96,7 @@ def test_scaling_matches_its_formulas(d):
     active = np.random.default_rng(d).random((20, 3)) > 0.25
     active[10] = False  # all contacts inactive
     got = scaling.scale_batch(A, q, mu, lower, active, contact_dims(d))
-    names = ("A", "P", "c", "l_hat", "T", "S", "gamma", "sigma", "lower_kept", "lower_scale", "on_q", "on_l", "zero_mu")
+    names = ("A", "P", "c", "l_hat", "T", "S", "gamma", "sigma", "lower_scale", "on_q", "on_l", "zero_mu")
     got = dict(zip(names, got))
     ref = _scaling_reference(A, q, mu, lower, active, d)
     for key, value in ref.items():

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from diffcontact.solver import kernel
+from diffcontact.solver.exact import contact_dims
 
 CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = (
     kernel.CONVERGED,
@@ -77,7 +78,7 @@ def solve_ipm(
         np.ascontiguousarray(lower.numpy()),
         np.ascontiguousarray(on.numpy()),
         np.ascontiguousarray(on_l.numpy()),
-        kernel.contact_dims(d),
+        contact_dims(d),
         tol,
         acceptable_tol,
         max_iter,

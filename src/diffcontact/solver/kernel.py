@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit, prange
 
 from diffcontact.solver import exact
-from diffcontact.solver.exact import contact_dims, dual_residual, polish  # noqa: F401 (contact_dims re-exported)
+from diffcontact.solver.exact import dual_residual, polish
 
 
 def _refresh_stale_cache() -> None:

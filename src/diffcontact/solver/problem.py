@@ -156,40 +156,36 @@ def solve_cone_qp(
 
 def _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter) -> tuple[ScaledSolution, ipm.IPMResult]:
     """Scale (f = γ·S·D·z, see ``scaling.py``), solve in z, and collect what the backward pass needs."""
-    B = q.shape[0]
     arrays = scaling.scale_batch(
         *(np.ascontiguousarray(t.detach().to(torch.float64).numpy()) for t in (A, q, mu, lower)),
         np.ascontiguousarray(active.numpy()),
         contact_dims(d),
     )
-    A64, P, c, l_hat, T, S, gamma, sigma, low64, lower_scale, on_q, on_l, zero_mu = map(torch.from_numpy, arrays)
+    A64, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = map(torch.from_numpy, arrays)
     q64 = q.detach().to(torch.float64)
-    onf = active.to(torch.float64)
 
-    def data(gamma):
-        return T * q64 / gamma[:, None], low64 / (sigma * gamma[:, None]) * onf
-
-    def run(gamma, sel=None, c=c, l_hat=l_hat):
+    def run(c, l_hat, sel=None):
         args = (P, c, l_hat, on_q, on_l)
         if sel is not None:
             args = tuple(a[sel] for a in args)
         return ipm.solve_ipm(*args, d, tol=tol, acceptable_tol=acceptable_tol, max_iter=max_iter)
 
-    result = run(gamma)
+    result = run(c, l_hat)
     # A badly estimated solution size (nearly singular A) can stall the method: solve those elements once more
     # with the scale of the stalled iterate.
     retry = (result.status == Status.MAX_ITER) & torch.isfinite(result.z).all(-1)
     if retry.any():
         gamma2 = gamma.clone()
         gamma2[retry] = gamma[retry] * result.z[retry].abs().amax(-1).clamp_min(1e-6)
-        res2 = run(gamma2, retry, *data(gamma2))
+        ratio = (gamma / gamma2)[:, None]  # c, l̂ and ∂l̂/∂lower all scale with 1/γ
+        res2 = run(c * ratio, l_hat * ratio, retry)
         better = res2.status < result.status[retry]
         idx = retry.nonzero().flatten()[better]
         if len(idx):
-            gamma = torch.where(torch.isin(torch.arange(B), idx), gamma2, gamma)
             for name in ("z", "status", "iterations", "residual", "s_l", "lam_l", "s_q", "lam_q"):
                 getattr(result, name)[idx] = getattr(res2, name)[better]
-            lower_scale = (lower_scale > 0) / (sigma * gamma[:, None])
+            gamma[idx] = gamma2[idx]
+            lower_scale[idx] *= ratio[idx]
     failed = result.status >= Status.MAX_ITER
     z = torch.where(failed[:, None], torch.zeros_like(result.z), result.z)
     slide = torch.zeros_like(sigma)

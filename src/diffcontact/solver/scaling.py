@@ -24,8 +24,8 @@ from numba import njit, prange
 def scale_batch(A, q, mu, lower, active, dims):
     """A: (B, n, n); q: (B, n); mu, lower: (B, K) float64; active: (B, K) bool; dims: tuple of length d.
 
-    Returns (A_sym, P, c, l_hat, T, S, gamma, sigma, lower_kept, lower_scale, on_q, on_l, zero_mu): A_sym = ½(A + Aᵀ)
-    (B, n, n); P (B, n, n); c, T, S (B, n); gamma (B,); sigma, l_hat, lower_kept, lower_scale = ∂l̂/∂lower (B, K);
+    Returns (A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu): A_sym = ½(A + Aᵀ)
+    (B, n, n); P (B, n, n); c, T, S (B, n); gamma (B,); sigma, l_hat, lower_scale = ∂l̂/∂lower (B, K);
     on_q (cones used), on_l (rays used), zero_mu (B, K) bool.
     """
     d = len(dims)
@@ -39,7 +39,6 @@ def scale_batch(A, q, mu, lower, active, dims):
     gamma = np.empty(B)
     sigma = np.empty((B, K))
     l_hat = np.empty((B, K))
-    lower_kept = np.empty((B, K))
     lower_scale = np.empty((B, K))
     on_q = np.zeros((B, K), dtype=np.bool_)
     on_l = np.zeros((B, K), dtype=np.bool_)
@@ -74,7 +73,6 @@ def scale_batch(A, q, mu, lower, active, dims):
             on = active[b, k]
             keep = on and lower[b, k] >= 1e-12 * sigma[b, k] * g
             low = lower[b, k] if keep else 0.0
-            lower_kept[b, k] = low
             lower_scale[b, k] = 1.0 / (sigma[b, k] * g) if keep else 0.0
             l_hat[b, k] = low / (sigma[b, k] * g) if on else 0.0
             if d > 1:
@@ -92,4 +90,4 @@ def scale_batch(A, q, mu, lower, active, dims):
                 r = k * d + i
                 if not active[b, k] or (i > 0 and zero_mu[b, k]):
                     P[b, r, r] += 1.0
-    return A_sym, P, c, l_hat, T, S, gamma, sigma, lower_kept, lower_scale, on_q, on_l, zero_mu
+    return A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
