@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from diffcontact.solver import exact
+from diffcontact.solver import exact, scaling
 from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.ipm import IPMResult
 
@@ -67,34 +67,17 @@ class ImplicitConeQP(torch.autograd.Function):
     def backward(ctx, grad_f):  # noqa: D102
         sol: ScaledSolution = ctx.sol
         res = sol.result
-        B, n = sol.z.shape
-        K = res.on.shape[-1]
-        d = n // K
+        d = sol.z.shape[-1] // res.on.shape[-1]
         gf = grad_f.to(torch.float64)
-        gamma = sol.gamma[:, None]
-        u, v_l = adjoint_solve(res, gamma * sol.T * gf)
-        # ∂L/∂P = −½(u zᵀ + z uᵀ), ∂L/∂c = −u, ∂L/∂l̂ = λ_l v_l in z-space; P = T A T, c = T q / γ, f = γ T z
-        Tu, Tz = sol.T * u, sol.T * sol.z
-        grads = [None] * 5
-        if ctx.needs_input_grad[0]:
-            grads[0] = -0.5 * (Tu.unsqueeze(-1) * Tz.unsqueeze(-2) + Tz.unsqueeze(-1) * Tu.unsqueeze(-2))
-        if ctx.needs_input_grad[1]:
-            grads[1] = -Tu / gamma
-        if ctx.needs_input_grad[2] and d > 1:
-            A = sol.A
-            gT = (
-                -u * (A @ Tz.unsqueeze(-1)).squeeze(-1)
-                - sol.z * (A @ Tu.unsqueeze(-1)).squeeze(-1)
-                - u * sol.q / gamma
-                + gamma * sol.z * gf
-            )
-            g_mu = (gT * sol.S).view(B, K, d)[..., 1:].sum(-1)
-            grads[2] = g_mu + sol.slide * u.view(B, K, d)[..., 0]
-        elif ctx.needs_input_grad[2]:
-            grads[2] = torch.zeros(B, K, dtype=torch.float64)
-        if ctx.needs_input_grad[3]:
-            grads[3] = res.on_l * res.lam_l * v_l * sol.lower_scale
-        return tuple(g.to(dt) if g is not None else None for g, dt in zip(grads[:4], ctx.dtypes)) + (None,)
+        u, v_l = adjoint_solve(res, sol.gamma[:, None] * sol.T * gf)
+        need = np.array(ctx.needs_input_grad[:4], dtype=np.bool_)
+        arrays = [
+            np.ascontiguousarray(t.numpy())
+            for t in (u, v_l, sol.z, gf, sol.A, sol.q, sol.T, sol.S, sol.gamma, res.lam_l, res.on_l, sol.lower_scale)
+        ] + [np.ascontiguousarray(sol.slide.numpy())]
+        grads = scaling.chain_rule_batch(*arrays, contact_dims(d), need)
+        grads = [torch.from_numpy(g) if want else None for g, want in zip(grads, need)]
+        return tuple(g.to(dt) if g is not None else None for g, dt in zip(grads, ctx.dtypes)) + (None,)
 
 
 def adjoint_solve(res: IPMResult, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -91,3 +91,51 @@ def scale_batch(A, q, mu, lower, active, dims):
                 if not active[b, k] or (i > 0 and zero_mu[b, k]):
                     P[b, r, r] += 1.0
     return A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def chain_rule_batch(u, v_l, z, gf, A, q, T, S, gamma, lam_l, on_l, lower_scale, slide, dims, need):
+    """The chain rule of the substitution, from the adjoint solution back to the data (see ``implicit.py``).
+
+    u, z, gf (∂L/∂f), q, T, S: (B, n); v_l, lam_l, lower_scale, slide: (B, K); A: (B, n, n) the symmetrised A;
+    gamma: (B,); on_l: (B, K) bool; need: (4,) bool, which of ∂L/∂A, ∂L/∂q, ∂L/∂μ, ∂L/∂lower to compute.
+    Returns (g_A (B, n, n), g_q (B, n), g_mu (B, K), g_lower (B, K)); arrays not needed are left as zeros of
+    shape (0, …).  In z-space ∂L/∂P = −½(u zᵀ + z uᵀ), ∂L/∂c = −u, ∂L/∂l̂ = λ_l v_l; P = T A T, c = T q/γ, f = γ T z.
+    """
+    d = len(dims)
+    B, K = v_l.shape
+    n = K * d
+    g_A = np.zeros((B if need[0] else 0, n, n))
+    g_q = np.zeros((B if need[1] else 0, n))
+    g_mu = np.zeros((B if need[2] else 0, K))
+    g_lo = np.zeros((B if need[3] else 0, K))
+    for b in prange(B):
+        g = gamma[b]
+        Tu = np.empty(n)
+        Tz = np.empty(n)
+        for i in range(n):
+            Tu[i] = T[b, i] * u[b, i]
+            Tz[i] = T[b, i] * z[b, i]
+        if need[0]:
+            for i in range(n):
+                for j in range(n):
+                    g_A[b, i, j] = -0.5 * (Tu[i] * Tz[j] + Tz[i] * Tu[j])
+        if need[1]:
+            for i in range(n):
+                g_q[b, i] = -Tu[i] / g
+        if need[2] and d > 1:
+            for k in range(K):
+                acc = slide[b, k] * u[b, k * d]
+                for r in range(k * d + 1, k * d + d):
+                    a_tz = 0.0
+                    a_tu = 0.0
+                    for j in range(n):
+                        a_tz += A[b, r, j] * Tz[j]
+                        a_tu += A[b, r, j] * Tu[j]
+                    gT = -u[b, r] * a_tz - z[b, r] * a_tu - u[b, r] * q[b, r] / g + g * z[b, r] * gf[b, r]
+                    acc += gT * S[b, r]
+                g_mu[b, k] = acc
+        if need[3]:
+            for k in range(K):
+                g_lo[b, k] = lam_l[b, k] * v_l[b, k] * lower_scale[b, k] if on_l[b, k] else 0.0
+    return g_A, g_q, g_mu, g_lo
