@@ -32,14 +32,15 @@ def _weak_ray(s, lam):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _weak_cone(s, lam, dims):
-    """A cone whose multiplier is negligible next to its slack: sticking, or exactly at stick/slip."""
+def _weak_cone(S, L, k, dims):
+    """A cone whose multiplier L[k] is negligible next to its slack S[k] ((K, d) arrays, rows read by index):
+    sticking, or exactly at stick/slip."""
     d = len(dims)
     ns = 0.0
     nl = 0.0
     for i in range(d):
-        ns += s[i] * s[i]
-        nl += lam[i] * lam[i]
+        ns += S[k, i] * S[k, i]
+        nl += L[k, i] * L[k, i]
     return math.sqrt(nl) <= 1e-6 * max(1.0, math.sqrt(ns))
 
 
@@ -134,7 +135,7 @@ def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M):
         else:
             M[row, row] = 1.0
         used = on[k] and d > 1
-        weak = used and use_weak and _weak_cone(s_q[k], lam_q[k], dims)
+        weak = used and use_weak and _weak_cone(s_q, lam_q, k, dims)
         for i in range(d):
             row = n + K + k * d + i
             if used:
@@ -157,12 +158,13 @@ def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M):
 def _lu_factor(R, piv):
     """LU factorisation with partial pivoting in place: the unit lower factor below the diagonal, the upper one
     above it, the reciprocals of its diagonal on the diagonal; row i was swapped with piv[i] at step i.  False
-    if R is singular (a pivot below 1e-13 of its largest entry)."""
+    if R is singular (a pivot below 1e-13 of its Frobenius norm: a sum vectorises, a running max does not)."""
     N = R.shape[0]
     scale = 0.0
     for i in range(N):
         for j in range(N):
-            scale = max(scale, abs(R[i, j]))
+            scale += R[i, j] * R[i, j]
+    scale = math.sqrt(scale)
     for col in range(N):
         p = col
         best = abs(R[col, col])
@@ -191,7 +193,10 @@ def _lu_factor(R, piv):
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def _lu_solve(R, piv, b, transpose):
-    """Solve R x = b (or Rᵀ x = b) in place with the factors of :func:`_lu_factor`."""
+    """Solve R x = b (or Rᵀ x = b) in place with the factors of :func:`_lu_factor`.
+
+    Column-oriented: each solved component is subtracted from the remaining ones at once (independent
+    updates, where the dot-product form is one chain of dependent additions)."""
     N = R.shape[0]
     if not transpose:
         for i in range(N):
@@ -200,27 +205,25 @@ def _lu_solve(R, piv, b, transpose):
                 t = b[i]
                 b[i] = b[p]
                 b[p] = t
-        for i in range(N):
-            t = b[i]
-            for k in range(i):
-                t -= R[i, k] * b[k]
-            b[i] = t
-        for i in range(N - 1, -1, -1):
-            t = b[i]
-            for j in range(i + 1, N):
-                t -= R[i, j] * b[j]
-            b[i] = t * R[i, i]
+        for i in range(N):  # unit lower
+            xi = b[i]
+            for r in range(i + 1, N):
+                b[r] -= R[r, i] * xi
+        for i in range(N - 1, -1, -1):  # upper, reciprocal diagonal
+            xi = b[i] * R[i, i]
+            b[i] = xi
+            for r in range(i):
+                b[r] -= R[r, i] * xi
     else:  # Rᵀ = Uᵀ Lᵀ P
-        for i in range(N):
-            t = b[i]
-            for k in range(i):
-                t -= R[k, i] * b[k]
-            b[i] = t * R[i, i]
-        for i in range(N - 1, -1, -1):
-            t = b[i]
+        for i in range(N):  # Uᵀ: column i of Uᵀ is row i of U right of the diagonal
+            xi = b[i] * R[i, i]
+            b[i] = xi
             for k in range(i + 1, N):
-                t -= R[k, i] * b[k]
-            b[i] = t
+                b[k] -= R[i, k] * xi
+        for i in range(N - 1, -1, -1):  # Lᵀ (unit): column i of Lᵀ is row i of L left of the diagonal
+            xi = b[i]
+            for k in range(i):
+                b[k] -= R[i, k] * xi
         for i in range(N - 1, -1, -1):
             p = piv[i]
             if p != i:
@@ -428,7 +431,7 @@ def _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf,
             elif onl[k]:  # weakly active: taken as inactive, its multiplier driven to zero
                 rhs[n + k] = -lam_l[k]
             if on[k] and soc:
-                weak = use_weak and _weak_cone(s_q[k], lam_q[k], dims)
+                weak = use_weak and _weak_cone(s_q, lam_q, k, dims)
                 for i in range(d):
                     row = n + K + k * d + i
                     if weak:

@@ -48,21 +48,21 @@ _FM = {"contract", "arcp", "nsz", "afn", "reassoc"}
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _soc_max_step(x, dx, dims):
-    """Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.  x, dx: (d,)."""
+def _soc_max_step(X, DX, k, dims):
+    """Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.  x, dx = X[k], DX[k]: (K, d) rows.
+
+    (Rows are read by index: a row view would cost an atomic reference count per call.)"""
     d = len(dims)
-    a = dx[0] * dx[0]
-    b = x[0] * dx[0]
-    c0 = x[0] * x[0]
+    a = DX[k, 0] * DX[k, 0]
+    b = X[k, 0] * DX[k, 0]
     for i in range(1, d):
-        a -= dx[i] * dx[i]
-        b -= x[i] * dx[i]
-        c0 -= x[i] * x[i]
+        a -= DX[k, i] * DX[k, i]
+        b -= X[k, i] * DX[k, i]
     r = 0.0
     for i in range(1, d):
-        r += x[i] * x[i]
+        r += X[k, i] * X[k, i]
     r = math.sqrt(r)
-    c = max((x[0] - r) * (x[0] + r), 0.0)
+    c = max((X[k, 0] - r) * (X[k, 0] + r), 0.0)
     disc = b * b - a * c
     if disc < -1e-12 * (b * b + abs(a * c)):
         return np.inf
@@ -139,18 +139,23 @@ def _cholesky(H, L):
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _chol_solve(L, b, x):
-    """Solve H x = b with the factor of :func:`_cholesky`."""
+    """Solve H x = b with the factor of :func:`_cholesky` (b is left unchanged).
+
+    Column-oriented: each solved component is subtracted from all the remaining ones at once, which are
+    independent updates along a stored row (the dot-product form is one long chain of dependent additions)."""
     n = L.shape[0]
     for i in range(n):
-        t = b[i]
-        for k in range(i):
-            t -= L[i, k] * x[k]
-        x[i] = t * L[i, i]
-    for i in range(n - 1, -1, -1):
-        t = x[i]
-        for k in range(i + 1, n):
-            t -= L[i, k] * x[k]
-        x[i] = t * L[i, i]
+        x[i] = b[i]
+    for i in range(n):  # L y = b; column i of L is row i above the diagonal
+        xi = x[i] * L[i, i]
+        x[i] = xi
+        for j in range(i + 1, n):
+            x[j] -= L[i, j] * xi
+    for i in range(n - 1, -1, -1):  # Lᵀ x = y; column i of Lᵀ is row i below the diagonal
+        xi = x[i] * L[i, i]
+        x[i] = xi
+        for j in range(i):
+            x[j] -= L[i, j] * xi
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
@@ -262,7 +267,14 @@ def _solve_one(P, c, low, on, onl, dims, tol, acc_tol, max_iter, z_out, sl_out, 
                 s_q[k, i] = 1.0 if i == 0 else 0.0
     if soc:
         for k in range(K):
-            _nt_scaling(s_q[k], lam_q[k], dims, Wq[k], Wqi[k], vwork)
+            for i in range(d):
+                tmp[i] = s_q[k, i]
+                tmp2[i] = lam_q[k, i]
+            _nt_scaling(tmp, tmp2, dims, Ws, Wsi, vwork)
+            for i in range(d):
+                for j in range(d):
+                    Wq[k, i, j] = Ws[i, j]
+                    Wqi[k, i, j] = Wsi[i, j]
             for i in range(d):
                 t = 0.0
                 for j in range(d):
@@ -347,15 +359,15 @@ def _solve_one(P, c, low, on, onl, dims, tol, acc_tol, max_iter, z_out, sl_out, 
                 for k in range(K):
                     rc_l[k] = -lt_l[k] * lt_l[k]
                     if soc:
-                        _jprod(lt_q[k], lt_q[k], dims, tmp)
+                        _jprod(lt_q, k, lt_q, k, dims, tmp)
                         for i in range(d):
                             rc_q[k, i] = -tmp[i]
             else:
                 for k in range(K):
                     rc_l[k] = -lt_l[k] * lt_l[k] + tau - A_dsl[k] * A_dll[k]
                     if soc:
-                        _jprod(lt_q[k], lt_q[k], dims, tmp)
-                        _jprod(A_dsq[k], A_dlq[k], dims, tmp2)
+                        _jprod(lt_q, k, lt_q, k, dims, tmp)
+                        _jprod(A_dsq, k, A_dlq, k, dims, tmp2)
                         for i in range(d):
                             rc_q[k, i] = -tmp[i] - tmp2[i] + (tau if i == 0 else 0.0)
             # first solve: b = −r
@@ -422,7 +434,7 @@ def _solve_one(P, c, low, on, onl, dims, tol, acc_tol, max_iter, z_out, sl_out, 
                         b_z[k * d + i] += dlq
                         e_q[k, i] = -r_q[k, i] + dz[k * d + i] - dsq
                         tmp2[i] = dst_q[k, i] + dlt_q[k, i]
-                    _jprod(lt_q[k], tmp2, dims, tmp)
+                    _jprod(lt_q, k, dv, 1, dims, tmp)  # dv[1] is tmp2
                     for i in range(d):
                         ec_q[k, i] = rc_q[k, i] - tmp[i]
                 else:
@@ -492,8 +504,8 @@ def _solve_one(P, c, low, on, onl, dims, tol, acc_tol, max_iter, z_out, sl_out, 
                     if A_dll[k] < 0:
                         alpha = min(alpha, -lam_l[k] / A_dll[k])
                 if on[k] and soc:
-                    alpha = min(alpha, _soc_max_step(lt_q[k], A_dsq[k], dims))
-                    alpha = min(alpha, _soc_max_step(lt_q[k], A_dlq[k], dims))
+                    alpha = min(alpha, _soc_max_step(lt_q, A_dsq, k, dims))
+                    alpha = min(alpha, _soc_max_step(lt_q, A_dlq, k, dims))
             if phase == 0:
                 a_aff = min(alpha, 1.0)
                 gap_aff = 0.0
@@ -572,14 +584,15 @@ def _worst(s_l, s_q, onl, on, dims, sign):
 
 
 @njit(cache=True, inline="always", fastmath=_FM, error_model="numpy")
-def _jprod(x, y, dims, out):
+def _jprod(X, kx, Y, ky, dims, out):
+    """out = X[kx] ∘ Y[ky], the Jordan product of two rows of (·, d) arrays (read by index, not as views)."""
     d = len(dims)
     t = 0.0
     for i in range(d):
-        t += x[i] * y[i]
+        t += X[kx, i] * Y[ky, i]
     out[0] = t
     for i in range(1, d):
-        out[i] = x[0] * y[i] + y[0] * x[i]
+        out[i] = X[kx, 0] * Y[ky, i] + Y[ky, 0] * X[kx, i]
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
