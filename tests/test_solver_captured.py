@@ -1,6 +1,7 @@
-"""Problems captured from the simulation benchmark that once stalled a variant of the solver (a smaller margin of
-the interior-point starting point): a BD5 contact (K = 3, d = 2, a lower bound of 1e-17) and a rope limit set
-(K = 19, d = 1, singular A).  They must converge and agree with Clarabel."""
+"""Problems captured from the simulation benchmark that stall from the default interior-point starting point (a
+margin of 0.1 inside the cones) and are solved by the retry from CVXOPT's (margin 1): a BD5 contact (K = 3, d = 2,
+a lower bound of 1e-17) and a rope limit set (K = 19, d = 1, singular A).  They must converge and agree with
+Clarabel."""
 
 from __future__ import annotations
 

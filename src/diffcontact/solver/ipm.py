@@ -33,6 +33,10 @@ CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = (
 )
 
 
+START_MARGIN = 0.1  # measured over 0.001 … 3 on random instances, K = 1 … 19, d = 2, 3
+ROBUST_MARGIN = 1.0  # CVXOPT's: the retry of elements that did not converge
+
+
 @dataclass
 class IPMResult:
     """Solution, status, and what the backward pass needs.  Shapes: B batch, K contacts, n = K·d."""
@@ -61,6 +65,7 @@ def solve_ipm(
     tol: float = 1e-10,
     acceptable_tol: float = 1e-7,
     max_iter: int = 60,
+    start_margin: float = START_MARGIN,
     polish_steps: int = 3,
     trace: np.ndarray | None = None,
 ) -> IPMResult:
@@ -69,8 +74,10 @@ def solve_ipm(
     P: (B, n, n) symmetric PSD; c: (B, n); lower: (B, K) ≥ 0; on: (B, K) bool, contacts whose second-order
     cone is used (d ≥ 2); on_l: (B, K) bool, contacts whose ray z_n ≥ lower is used; float64.
     The data are expected scaled to order one (see ``problem.py``); ``tol`` bounds the KKT residual relative
-    to max(1, ‖z‖∞).  ``trace`` (B, T, 4), if given, receives per iteration the primal and dual residuals, the
-    gap and the step taken (for diagnosis).
+    to max(1, ‖z‖∞).  ``start_margin``: how far inside the cones the starting point lies (CVXOPT's rule uses 1;
+    the smaller default takes about half an iteration less on average, and callers retry failures with 1).
+    ``trace`` (B, T, 4), if given, receives per iteration the primal and dual residuals, the gap and the step
+    taken (for diagnosis).
     """
     arrays = kernel.solve_batch(
         np.ascontiguousarray(P.numpy()),
@@ -82,6 +89,7 @@ def solve_ipm(
         tol,
         acceptable_tol,
         max_iter,
+        start_margin,
         polish_steps,
         trace if trace is not None else np.zeros((P.shape[0], 0, 4)),
     )

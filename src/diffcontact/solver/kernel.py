@@ -184,8 +184,12 @@ def _factor(P, K, dims, onl, on, w2l, w2q, H, L):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _solve_one(P, c, low, on, onl, dims, tol, acc_tol, max_iter, z_out, sl_out, ll_out, sq_out, lq_out, buf, trace):
-    """One problem.  Returns (status, iterations, residual); writes the best iterate to the *_out arrays."""
+def _solve_one(
+    P, c, low, on, onl, dims, tol, acc_tol, max_iter, margin, z_out, sl_out, ll_out, sq_out, lq_out, buf, trace
+):
+    """One problem.  Returns (status, iterations, residual); writes the best iterate to the *_out arrays.
+
+    margin: how far inside the cones the starting point is put (CVXOPT's rule uses 1)."""
     d = len(dims)
     K = low.shape[0]
     n = K * d
@@ -243,15 +247,15 @@ def _solve_one(P, c, low, on, onl, dims, tol, acc_tol, max_iter, z_out, sl_out, 
         if onl[k]:
             rhs[k * d] -= h_l[k]  # + Gᵀh with G = −e_n on the ray
     _chol_solve(L, rhs, z)
-    # s0 = h − Gz, λ0 = −s0, then each shifted into the interior of the cones (CVXOPT's rule)
+    # s0 = h − Gz, λ0 = −s0, then each shifted into the interior of the cones by `margin` (CVXOPT's rule)
     for k in range(K):
         s_l[k] = h_l[k] + z[k * d] if onl[k] else 1.0
         for i in range(d):
             s_q[k, i] = z[k * d + i] if on[k] else (1.0 if i == 0 else 0.0)
     shift_s = _worst(s_l, s_q, onl, on, dims, 1.0)
     shift_l = _worst(s_l, s_q, onl, on, dims, -1.0)
-    add_s = 1.0 + shift_s if shift_s >= -1e-8 else 0.0
-    add_l = 1.0 + shift_l if shift_l >= -1e-8 else 0.0
+    add_s = margin + shift_s if shift_s >= -1e-8 else 0.0
+    add_l = margin + shift_l if shift_l >= -1e-8 else 0.0
     for k in range(K):
         if onl[k]:
             lam_l[k] = -s_l[k] + add_l
@@ -690,7 +694,7 @@ def _newton(
 
 
 @njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
-def solve_batch(P, c, low, on, onl, dims, tol, acc_tol, max_iter, polish_steps, trace):
+def solve_batch(P, c, low, on, onl, dims, tol, acc_tol, max_iter, margin, polish_steps, trace):
     """Solve every batch element.  P: (B, n, n); c: (B, n); low, on, onl: (B, K).  float64 / bool."""
     d = len(dims)
     B, K = low.shape
@@ -728,6 +732,7 @@ def solve_batch(P, c, low, on, onl, dims, tol, acc_tol, max_iter, polish_steps, 
                     tol_ipm,
                     acc_tol,
                     max_iter,
+                    margin,
                     z[b],
                     s_l[b],
                     lam_l[b],
