@@ -32,15 +32,14 @@ def _weak_ray(s, lam):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _weak_cone(S, L, k, dims):
-    """A cone whose multiplier L[k] is negligible next to its slack S[k] ((K, d) arrays, rows read by index):
-    sticking, or exactly at stick/slip."""
+def _weak_cone(s, lam, dims):
+    """A cone whose multiplier is negligible next to its slack: sticking, or exactly at stick/slip."""
     d = len(dims)
     ns = 0.0
     nl = 0.0
     for i in range(d):
-        ns += S[k, i] * S[k, i]
-        nl += L[k, i] * L[k, i]
+        ns += s[i] * s[i]
+        nl += lam[i] * lam[i]
     return math.sqrt(nl) <= 1e-6 * max(1.0, math.sqrt(ns))
 
 
@@ -135,7 +134,7 @@ def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M):
         else:
             M[row, row] = 1.0
         used = on[k] and d > 1
-        weak = used and use_weak and _weak_cone(s_q, lam_q, k, dims)
+        weak = used and use_weak and _weak_cone(s_q[k], lam_q[k], dims)
         for i in range(d):
             row = n + K + k * d + i
             if used:
@@ -232,6 +231,16 @@ def _lu_solve(R, piv, b, transpose):
                 b[p] = t
 
 
+@njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
+def _reduction(K, dims, ipos):
+    """The reduction of :func:`factor_kkt` kept in ipos: returns (n, N, rowpos, colpos, ckeep) — each row's and
+    column's place in the reduced matrix (−1 eliminated, −2 identity) and the kept columns in order; the LU's
+    pivots follow them at ipos[3N:]."""
+    n = K * len(dims)
+    N = n + K + n
+    return n, N, ipos[:N], ipos[N : 2 * N], ipos[2 * N : 3 * N]
+
+
 @njit(cache=True, fastmath=_FM, error_model="numpy")
 def factor_kkt(M, K, dims, on, onl, work, ipos):
     """Factorise the matrix M of :func:`_kkt_matrix` for :func:`solve_factored` (M must stay unchanged).
@@ -243,12 +252,8 @@ def factor_kkt(M, K, dims, on, onl, work, ipos):
     Returns N', or −1 if the reduced matrix is singular.
     """
     d = len(dims)
-    n = K * d
-    N = n + K + K * d
+    n, N, rowpos, colpos, ckeep = _reduction(K, dims, ipos)
     soc = d > 1
-    rowpos = ipos[:N]
-    colpos = ipos[N : 2 * N]
-    ckeep = ipos[2 * N : 3 * N]
     for i in range(N):
         rowpos[i] = 0
         colpos[i] = 0
@@ -301,12 +306,8 @@ def factor_kkt(M, K, dims, on, onl, work, ipos):
 def solve_factored(M, K, dims, on, onl, b, work, ipos, nr, transpose):
     """Solve M x = b (or Mᵀ x = b) with the factors of :func:`factor_kkt` (which returned nr); b becomes x."""
     d = len(dims)
-    n = K * d
-    N = n + K + K * d
+    n, N, rowpos, colpos, ckeep = _reduction(K, dims, ipos)
     soc = d > 1
-    rowpos = ipos[:N]
-    colpos = ipos[N : 2 * N]
-    ckeep = ipos[2 * N : 3 * N]
     piv = ipos[3 * N : 3 * N + nr]
     R = work[: nr * nr].reshape(nr, nr)
     y = work[nr * nr : nr * nr + nr]
@@ -431,7 +432,7 @@ def _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf,
             elif onl[k]:  # weakly active: taken as inactive, its multiplier driven to zero
                 rhs[n + k] = -lam_l[k]
             if on[k] and soc:
-                weak = use_weak and _weak_cone(s_q, lam_q, k, dims)
+                weak = use_weak and _weak_cone(s_q[k], lam_q[k], dims)
                 for i in range(d):
                     row = n + K + k * d + i
                     if weak:

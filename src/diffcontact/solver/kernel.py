@@ -48,21 +48,19 @@ _FM = {"contract", "arcp", "nsz", "afn", "reassoc"}
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _soc_max_step(X, DX, k, dims):
-    """Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.  x, dx = X[k], DX[k]: (K, d) rows.
-
-    (Rows are read by index: a row view would cost an atomic reference count per call.)"""
+def _soc_max_step(x, dx, dims):
+    """Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.  x, dx: (d,)."""
     d = len(dims)
-    a = DX[k, 0] * DX[k, 0]
-    b = X[k, 0] * DX[k, 0]
+    a = dx[0] * dx[0]
+    b = x[0] * dx[0]
     for i in range(1, d):
-        a -= DX[k, i] * DX[k, i]
-        b -= X[k, i] * DX[k, i]
+        a -= dx[i] * dx[i]
+        b -= x[i] * dx[i]
     r = 0.0
     for i in range(1, d):
-        r += X[k, i] * X[k, i]
+        r += x[i] * x[i]
     r = math.sqrt(r)
-    c = max((X[k, 0] - r) * (X[k, 0] + r), 0.0)
+    c = max((x[0] - r) * (x[0] + r), 0.0)
     disc = b * b - a * c
     if disc < -1e-12 * (b * b + abs(a * c)):
         return np.inf
@@ -271,14 +269,7 @@ def _solve_one(
                 s_q[k, i] = 1.0 if i == 0 else 0.0
     if soc:
         for k in range(K):
-            for i in range(d):
-                tmp[i] = s_q[k, i]
-                tmp2[i] = lam_q[k, i]
-            _nt_scaling(tmp, tmp2, dims, Ws, Wsi, vwork)
-            for i in range(d):
-                for j in range(d):
-                    Wq[k, i, j] = Ws[i, j]
-                    Wqi[k, i, j] = Wsi[i, j]
+            _nt_scaling(s_q[k], lam_q[k], dims, Wq[k], Wqi[k], vwork)
             for i in range(d):
                 t = 0.0
                 for j in range(d):
@@ -363,15 +354,15 @@ def _solve_one(
                 for k in range(K):
                     rc_l[k] = -lt_l[k] * lt_l[k]
                     if soc:
-                        _jprod(lt_q, k, lt_q, k, dims, tmp)
+                        _jprod(lt_q[k], lt_q[k], dims, tmp)
                         for i in range(d):
                             rc_q[k, i] = -tmp[i]
             else:
                 for k in range(K):
                     rc_l[k] = -lt_l[k] * lt_l[k] + tau - A_dsl[k] * A_dll[k]
                     if soc:
-                        _jprod(lt_q, k, lt_q, k, dims, tmp)
-                        _jprod(A_dsq, k, A_dlq, k, dims, tmp2)
+                        _jprod(lt_q[k], lt_q[k], dims, tmp)
+                        _jprod(A_dsq[k], A_dlq[k], dims, tmp2)
                         for i in range(d):
                             rc_q[k, i] = -tmp[i] - tmp2[i] + (tau if i == 0 else 0.0)
             # first solve: b = −r
@@ -438,7 +429,7 @@ def _solve_one(
                         b_z[k * d + i] += dlq
                         e_q[k, i] = -r_q[k, i] + dz[k * d + i] - dsq
                         tmp2[i] = dst_q[k, i] + dlt_q[k, i]
-                    _jprod(lt_q, k, dv, 1, dims, tmp)  # dv[1] is tmp2
+                    _jprod(lt_q[k], tmp2, dims, tmp)
                     for i in range(d):
                         ec_q[k, i] = rc_q[k, i] - tmp[i]
                 else:
@@ -508,8 +499,8 @@ def _solve_one(
                     if A_dll[k] < 0:
                         alpha = min(alpha, -lam_l[k] / A_dll[k])
                 if on[k] and soc:
-                    alpha = min(alpha, _soc_max_step(lt_q, A_dsq, k, dims))
-                    alpha = min(alpha, _soc_max_step(lt_q, A_dlq, k, dims))
+                    alpha = min(alpha, _soc_max_step(lt_q[k], A_dsq[k], dims))
+                    alpha = min(alpha, _soc_max_step(lt_q[k], A_dlq[k], dims))
             if phase == 0:
                 a_aff = min(alpha, 1.0)
                 gap_aff = 0.0
@@ -588,15 +579,15 @@ def _worst(s_l, s_q, onl, on, dims, sign):
 
 
 @njit(cache=True, inline="always", fastmath=_FM, error_model="numpy")
-def _jprod(X, kx, Y, ky, dims, out):
-    """out = X[kx] ∘ Y[ky], the Jordan product of two rows of (·, d) arrays (read by index, not as views)."""
+def _jprod(x, y, dims, out):
+    """out = x ∘ y, the Jordan product of the second-order cone."""
     d = len(dims)
     t = 0.0
     for i in range(d):
-        t += X[kx, i] * Y[ky, i]
+        t += x[i] * y[i]
     out[0] = t
     for i in range(1, d):
-        out[i] = X[kx, 0] * Y[ky, i] + Y[ky, 0] * X[kx, i]
+        out[i] = x[0] * y[i] + y[0] * x[i]
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")

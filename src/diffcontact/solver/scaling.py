@@ -111,27 +111,24 @@ def chain_rule_batch(u, v_l, z, gf, A, q, T, S, gamma, lam_l, on_l, lower_scale,
     g_lo = np.zeros((B if need[3] else 0, K))
     for b in prange(B):
         g = gamma[b]
-        Tu = np.empty(n)
-        Tz = np.empty(n)
-        for i in range(n):
-            Tu[i] = T[b, i] * u[b, i]
-            Tz[i] = T[b, i] * z[b, i]
         if need[0]:
             for i in range(n):
+                tu = T[b, i] * u[b, i]
+                tz = T[b, i] * z[b, i]
                 for j in range(n):
-                    g_A[b, i, j] = -0.5 * (Tu[i] * Tz[j] + Tz[i] * Tu[j])
+                    g_A[b, i, j] = -0.5 * (tu * T[b, j] * z[b, j] + tz * T[b, j] * u[b, j])
         if need[1]:
             for i in range(n):
-                g_q[b, i] = -Tu[i] / g
+                g_q[b, i] = -T[b, i] * u[b, i] / g
         if need[2] and d > 1:
             for k in range(K):
                 acc = slide[b, k] * u[b, k * d]
                 for r in range(k * d + 1, k * d + d):
-                    a_tz = 0.0
+                    a_tz = 0.0  # (A T z)_r and (A T u)_r
                     a_tu = 0.0
                     for j in range(n):
-                        a_tz += A[b, r, j] * Tz[j]
-                        a_tu += A[b, r, j] * Tu[j]
+                        a_tz += A[b, r, j] * T[b, j] * z[b, j]
+                        a_tu += A[b, r, j] * T[b, j] * u[b, j]
                     gT = -u[b, r] * a_tz - z[b, r] * a_tu - u[b, r] * q[b, r] / g + g * z[b, r] * gf[b, r]
                     acc += gT * S[b, r]
                 g_mu[b, k] = acc
