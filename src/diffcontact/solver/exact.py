@@ -24,6 +24,9 @@ def contact_dims(d: int) -> tuple:
 # fast-math without the no-NaN / no-inf assumptions (the callers test for both)
 _FM = {"contract", "arcp", "nsz", "afn", "reassoc"}
 
+# per-element status codes (ipm.py), the same in the compiled interior-point kernel (lanes/ipm_lanes.hpp)
+CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
+
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
 def _weak_ray(s, lam):
@@ -493,6 +496,59 @@ def polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, 
     if r > 1e-15:
         r, singular = _polish(P, c, low, on, onl, dims, z, s_l, lam_l, s_q, lam_q, steps, M, pbuf, ipos, True)
     return r
+
+
+@njit(cache=True, parallel=True, fastmath=_FM, error_model="numpy")
+def polish_batch(P, c, low, on, onl, dims, idx, z, s_l, lam_l, s_q, lam_q, status, res, steps, tol, acc_tol, last):
+    """Polish the interior-point solutions of the elements ``idx`` in place and settle their status.
+
+    P: (B, n, n); c: (B, n); low, on, onl: (B, K); z, s_l, lam_l, s_q, lam_q, status, res: the interior-point
+    method's output (``lanes.solve``), updated at the rows ``idx``.  An element counts as converged if its exact
+    KKT residual is at most ``tol`` — at most 1e-13 unless ``last``: a larger residual after a first pass hints
+    at a degenerate solution, which a pass of the interior-point method to the full tolerance resolves better.
+    Returns a (len(idx),) bool mask of the elements for that pass (none if ``last``).
+    """
+    d = len(dims)
+    K = low.shape[1]
+    n = K * d
+    N = n + K + K * d
+    m = idx.shape[0]
+    again = np.zeros(m, dtype=np.bool_)
+    n_chunks = min(m, 64)
+    for ch in prange(n_chunks):
+        M = np.empty((N, N))
+        pbuf = np.empty(N + 5 * K + 2 * n + 4 * K * d + N * N + 2 * N)
+        ipos = np.empty(4 * N, dtype=np.int64)
+        for j in range(ch, m, n_chunks):
+            b = idx[j]
+            if status[b] > MAX_ITER:  # numerical trouble or unbounded: reported as such
+                continue
+            r = res[b]
+            if steps > 0:
+                r = polish(
+                    P[b],
+                    c[b],
+                    low[b],
+                    on[b],
+                    onl[b],
+                    dims,
+                    z[b],
+                    s_l[b],
+                    lam_l[b],
+                    s_q[b],
+                    lam_q[b],
+                    steps,
+                    M,
+                    pbuf,
+                    ipos,
+                )
+            if r <= (tol if last else min(tol, 1e-13)):
+                status[b] = CONVERGED
+            else:
+                status[b] = INACCURATE if r <= acc_tol else MAX_ITER
+                again[j] = not last
+            res[b] = r
+    return again
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")

@@ -1,0 +1,621 @@
+// Interior-point method for many small contact cone QPs, W problems at a time in the lanes of SIMD vectors.
+//
+// The algorithm is the one of ipm.py (Mehrotra predictor–corrector, Nesterov–Todd scaling of the second-order
+// cones kept as d×d matrices and updated multiplicatively, one step of iterative refinement of every Newton
+// direction near the solution, the best iterate kept, stalls detected).  The problems of a group run in lockstep:
+// every operation acts on W problems at once, a problem that has finished stops being updated (its best iterate is
+// kept) and the group ends when all have.  Per-contact switches (a ray or cone in use or not) are lane masks.
+//
+// Included once per instruction set by lanes_*.cpp with LANES (vector width) and NS (namespace) defined.
+// No standard headers: the translation units switch the target ISA with a pragma first, and functions from
+// headers compiled for another target could not be inlined here.
+
+namespace NS {
+
+typedef double V __attribute__((vector_size(8 * LANES)));
+typedef long long M __attribute__((vector_size(8 * LANES)));
+typedef long long i64;
+
+enum { CONVERGED = 0, INACCURATE = 1, MAX_ITER = 2, NUMERICAL = 3, UNBOUNDED = 4 };
+
+static inline V splat(double x) { return V{} + x; }
+static inline V vsqrt(V x) {
+  V r;
+  for (int l = 0; l < LANES; l++) r[l] = __builtin_sqrt(x[l]);
+  return r;
+}
+static inline V vabs(V x) { return x < 0.0 ? -x : x; }
+// max / min that keep a NaN of either argument (a NaN must reach the finiteness test)
+static inline V vmax(V a, V b) { return (a != a) ? a : (a >= b ? a : b); }
+static inline V vmin(V a, V b) { return (a != a) ? a : (a <= b ? a : b); }
+static inline bool any(M m) {
+  for (int l = 0; l < LANES; l++)
+    if (m[l]) return true;
+  return false;
+}
+static inline M finite(V x) {
+  M r;
+  for (int l = 0; l < LANES; l++) r[l] = __builtin_isfinite(x[l]) ? -1 : 0;
+  return r;
+}
+static inline V sel(M m, V a, V b) { return m ? a : b; }
+static inline V sel(M m, V a, double b) { return m ? a : splat(b); }
+static inline V sel(M m, double a, V b) { return m ? splat(a) : b; }
+
+extern "C" int posix_memalign(void** ptr, __SIZE_TYPE__ alignment, __SIZE_TYPE__ size);
+extern "C" void free(void* ptr);
+
+// Work arrays of one group (lane vectors), carved from one aligned buffer.
+template <int D>
+struct Work {
+  int K, n;
+  V *P, *c, *H, *L;
+  V *z, *r_z, *b_z, *dz, *dz2, *A_dz, *rhs;
+  V *s_l, *lam_l, *lt_l, *w2l, *r_l, *h_l, *w2t_l, *ds_l, *dl_l, *e_l, *ec_l, *rc_l, *A_dsl, *A_dll;
+  V *s_q, *lam_q, *lt_q, *r_q, *u_q, *t_q, *w2t_q, *dst_q, *dlt_q, *e_q, *ec_q, *rc_q, *A_dsq, *A_dlq;
+  V *Wq, *Wqi, *w2q;
+  V *zb, *slb, *llb, *sqb, *lqb;  // best iterate
+  M *onl, *on;
+
+  static i64 size(int K) {  // in vectors
+    i64 n = (i64)K * D;
+    return 4 * n * n + 9 * n + 16 * (i64)K + 16 * n + 3 * n * D + 2 * (i64)K;
+  }
+  void carve(V* buf, int K_) {
+    K = K_;
+    n = K * D;
+    V* p = buf;
+    auto take = [&p](i64 m) {
+      V* r = p;
+      p += m;
+      return r;
+    };
+    P = take(n * n), H = take(n * n), L = take(n * n);
+    c = take(n), z = take(n), r_z = take(n), b_z = take(n), dz = take(n), dz2 = take(n), A_dz = take(n);
+    rhs = take(n), zb = take(n);
+    V** kv[] = {&s_l, &lam_l, &lt_l, &w2l, &r_l, &h_l, &w2t_l, &ds_l,
+                &dl_l, &e_l,   &ec_l, &rc_l, &A_dsl, &A_dll, &slb, &llb};
+    for (V** a : kv) *a = take(K);
+    V** qv[] = {&s_q, &lam_q, &lt_q, &r_q, &u_q, &t_q, &w2t_q, &dst_q,
+                &dlt_q, &e_q, &ec_q, &rc_q, &A_dsq, &A_dlq, &sqb, &lqb};
+    for (V** a : qv) *a = take(n);
+    Wq = take(n * D), Wqi = take(n * D), w2q = take(n * D);
+    onl = (M*)take(K);
+    on = (M*)take(K);
+    (void)take(n * n);  // (size(): 4n² leaves room)
+  }
+};
+
+// Cholesky factor of H into L (layout of kernel._cholesky: factor below the diagonal, its transpose above,
+// reciprocal diagonal).  Returns the lanes where H is positive definite.
+static inline M cholesky(int n, const V* H, V* L) {
+  M ok = (M{} == 0);
+  for (int j = 0; j < n; j++) {
+    V s = H[j * n + j];
+    for (int k = 0; k < j; k++) s -= L[j * n + k] * L[j * n + k];
+    ok &= (s > 0.0);
+    V inv = 1.0 / vsqrt(s > 0.0 ? s : 1.0);
+    L[j * n + j] = inv;
+    for (int i = j + 1; i < n; i++) {
+      V t = H[i * n + j];
+      for (int k = 0; k < j; k++) t -= L[i * n + k] * L[j * n + k];
+      t *= inv;
+      L[i * n + j] = t;
+      L[j * n + i] = t;
+    }
+  }
+  return ok;
+}
+
+static inline void chol_solve(int n, const V* L, const V* b, V* x) {
+  for (int i = 0; i < n; i++) x[i] = b[i];
+  for (int i = 0; i < n; i++) {
+    V xi = x[i] * L[i * n + i];
+    x[i] = xi;
+    for (int j = i + 1; j < n; j++) x[j] -= L[i * n + j] * xi;
+  }
+  for (int i = n - 1; i >= 0; i--) {
+    V xi = x[i] * L[i * n + i];
+    x[i] = xi;
+    for (int j = 0; j < i; j++) x[j] -= L[i * n + j] * xi;
+  }
+}
+
+// H = P + GᵀW⁻²G and its factor, with one diagonal shift of the lanes where it is not positive definite.
+template <int D>
+static M factor(Work<D>& w, const V* w2l, const V* w2q, M run) {
+  const int n = w.n, K = w.K;
+  for (int i = 0; i < n * n; i++) w.H[i] = w.P[i];
+  for (int k = 0; k < K; k++) {
+    w.H[(k * D) * n + k * D] += sel(w.onl[k], w2l[k], 0.0);
+    if (D > 1)
+      for (int i = 0; i < D; i++)
+        for (int j = 0; j < D; j++) w.H[(k * D + i) * n + k * D + j] += sel(w.on[k], w2q[(k * D + i) * D + j], 0.0);
+  }
+  M ok = cholesky(n, w.H, w.L);
+  if (!any(run & ~ok)) return ok;
+  V m = splat(1.0);
+  for (int i = 0; i < n; i++) m = vmax(m, vabs(w.H[i * n + i]));
+  for (int i = 0; i < n; i++) w.H[i * n + i] += sel(ok, splat(0.0), 1e-13 * m);
+  return cholesky(n, w.H, w.L);
+}
+
+// Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none (kernel._soc_max_step).
+template <int D>
+static inline V soc_max_step(const V* x, const V* dx) {
+  V a = dx[0] * dx[0], b = x[0] * dx[0], r = splat(0.0);
+  for (int i = 1; i < D; i++) {
+    a -= dx[i] * dx[i];
+    b -= x[i] * dx[i];
+    r += x[i] * x[i];
+  }
+  r = vsqrt(r);
+  V c = vmax((x[0] - r) * (x[0] + r), splat(0.0));
+  V disc = b * b - a * c;
+  M none = disc < -1e-12 * (b * b + vabs(a * c));
+  V sq = vsqrt(vmax(disc, splat(0.0)));
+  V qq = b >= 0.0 ? -(b + sq) : -(b - sq);
+  const V inf = splat(__builtin_inf());
+  V r1 = qq / sel(a != 0.0, a, 1.0);
+  V best = sel((a != 0.0) & (r1 > 0.0), r1, inf);
+  V r2 = c / sel(qq != 0.0, qq, 1.0);
+  best = sel((qq != 0.0) & (r2 > 0.0) & (r2 < best), r2, best);
+  return sel(none, inf, best);
+}
+
+// NT scaling of one cone: W, Wi (D×D) with W λ = W⁻¹ s (kernel._nt_scaling).
+template <int D>
+static inline void nt_scaling(const V* s, const V* lam, V* W, V* Wi) {
+  V rs = splat(0.0), rl = splat(0.0);
+  for (int i = 1; i < D; i++) {
+    rs += s[i] * s[i];
+    rl += lam[i] * lam[i];
+  }
+  rs = vsqrt(rs);
+  rl = vsqrt(rl);
+  V sn = vsqrt(vmax((s[0] - rs) * (s[0] + rs), splat(1e-300)));
+  V ln = vsqrt(vmax((lam[0] - rl) * (lam[0] + rl), splat(1e-300)));
+  V dot = splat(0.0);
+  for (int i = 0; i < D; i++) dot += s[i] * lam[i] / (sn * ln);
+  V gamma = vsqrt(vmax((1.0 + dot) / 2.0, splat(1e-300)));
+  V v[D];
+  for (int i = 0; i < D; i++) v[i] = (s[i] / sn + (i == 0 ? lam[i] : -lam[i]) / ln) / (2.0 * gamma);
+  v[0] += 1.0;
+  V nv = vsqrt(2.0 * v[0]);
+  for (int i = 0; i < D; i++) v[i] /= nv;
+  V eta = vsqrt(sn / ln);
+  for (int i = 0; i < D; i++)
+    for (int j = 0; j < D; j++) {
+      double jij = i == j ? (i == 0 ? 1.0 : -1.0) : 0.0;
+      double sij = (i == 0 ? 1.0 : -1.0) * (j == 0 ? 1.0 : -1.0);
+      W[i * D + j] = eta * (2.0 * v[i] * v[j] - jij);
+      Wi[i * D + j] = (2.0 * sij * v[i] * v[j] - jij) / eta;
+    }
+}
+
+template <int D>
+static inline void jprod(const V* x, const V* y, V* out) {
+  V t = splat(0.0);
+  for (int i = 0; i < D; i++) t += x[i] * y[i];
+  out[0] = t;
+  for (int i = 1; i < D; i++) out[i] = x[0] * y[i] + y[0] * x[i];
+}
+
+// Solve P Δz + GᵀΔλ = b_z, GΔz + Δs = b_s, λ̃∘(W⁻ᵀΔs + WΔλ) = rc (kernel._newton).
+template <int D>
+static void newton(Work<D>& w, const V* b_l, const V* b_q, const V* rc_l, const V* rc_q) {
+  const int n = w.n, K = w.K;
+  for (int i = 0; i < n; i++) w.rhs[i] = w.b_z[i];
+  for (int k = 0; k < K; k++) {
+    V u = rc_l[k] / w.lt_l[k];
+    V t = -b_l[k] + (w.s_l[k] / w.lt_l[k]) * u;
+    w.w2t_l[k] = sel(w.onl[k], w.w2l[k] * t, 0.0);
+    w.rhs[k * D] += w.w2t_l[k];
+    if (D > 1) {
+      const V* lt = w.lt_q + k * D;
+      const V* rc = rc_q + k * D;
+      V* uq = w.u_q + k * D;
+      V r1 = splat(0.0), det = lt[0] * lt[0];
+      for (int i = 1; i < D; i++) {
+        r1 += lt[i] * rc[i];
+        det -= lt[i] * lt[i];
+      }
+      V u0 = (lt[0] * rc[0] - r1) / det;
+      uq[0] = u0;
+      for (int i = 1; i < D; i++) uq[i] = (rc[i] - u0 * lt[i]) / lt[0];
+      const V* Wq = w.Wq + k * D * D;
+      V* tq = w.t_q + k * D;
+      for (int i = 0; i < D; i++) {
+        V t2 = -b_q[k * D + i];
+        for (int j = 0; j < D; j++) t2 += Wq[j * D + i] * uq[j];
+        tq[i] = t2;
+      }
+      const V* w2q = w.w2q + k * D * D;
+      for (int i = 0; i < D; i++) {
+        V t2 = splat(0.0);
+        for (int j = 0; j < D; j++) t2 += w2q[i * D + j] * tq[j];
+        w.rhs[k * D + i] += sel(w.on[k], t2, 0.0);
+      }
+    }
+  }
+  chol_solve(n, w.L, w.rhs, w.dz);
+  for (int k = 0; k < K; k++) {
+    V g = -w.dz[k * D];
+    w.dl_l[k] = sel(w.onl[k], w.w2l[k] * g + w.w2t_l[k], 0.0);
+    w.ds_l[k] = sel(w.onl[k], b_l[k] - g, 0.0);
+    if (D > 1) {
+      V tmp[D];
+      for (int i = 0; i < D; i++) tmp[i] = -w.dz[k * D + i] + w.t_q[k * D + i];
+      const V* Wqi = w.Wqi + k * D * D;
+      for (int i = 0; i < D; i++) {
+        V t = splat(0.0);
+        for (int j = 0; j < D; j++) t += Wqi[j * D + i] * tmp[j];
+        w.dlt_q[k * D + i] = sel(w.on[k], t, 0.0);
+        w.dst_q[k * D + i] = sel(w.on[k], w.u_q[k * D + i] - t, 0.0);
+      }
+    }
+  }
+}
+
+// max over the cones in use of −(smallest eigenvalue of sign·s) (kernel._worst)
+template <int D>
+static V worst(const Work<D>& w, double sign) {
+  V r = splat(-__builtin_inf());
+  for (int k = 0; k < w.K; k++) {
+    r = sel(w.onl[k], vmax(r, -sign * w.s_l[k]), r);
+    if (D > 1) {
+      V t = splat(0.0);
+      for (int i = 1; i < D; i++) t += w.s_q[k * D + i] * w.s_q[k * D + i];
+      r = sel(w.on[k], vmax(r, -(sign * w.s_q[k * D] - vsqrt(t))), r);
+    }
+  }
+  return r;
+}
+
+struct Options {
+  double tol, acc_tol, margin, refine_tol;
+  i64 max_iter;
+};
+
+// One group; its data gathered into w (P, c, onl, on and low in h_l as −low).  Writes the best iterate to the
+// w.*b arrays and status / iterations / residual per lane; trace[l] (T × 4 per lane, or null).
+template <int D>
+static void solve_group(Work<D>& w, const Options& o, i64* status, i64* iters_out, double* res_out,
+                        double* const* trace, i64 T) {
+  const int K = w.K, n = w.n;
+  const bool soc = D > 1;
+  const V one = splat(1.0), zero = splat(0.0), inf = splat(__builtin_inf());
+  V degree = zero;
+  for (int k = 0; k < K; k++) {
+    degree += sel(w.onl[k], one, zero);
+    if (soc) degree += sel(w.on[k], one, zero);
+  }
+  // outputs of a lane that never records an iterate (no cone in use: z = 0)
+  for (int i = 0; i < n; i++) w.zb[i] = zero, w.sqb[i] = zero, w.lqb[i] = zero;
+  for (int k = 0; k < K; k++) w.slb[k] = one, w.llb[k] = one;
+  M run = degree > 0.0;
+  i64 stat[LANES], its[LANES];
+  for (int l = 0; l < LANES; l++) stat[l] = run[l] ? MAX_ITER : CONVERGED, its[l] = 0;
+
+  // ---- initial point: W = I ----
+  for (int k = 0; k < K; k++) {
+    w.w2l[k] = one;
+    for (int i = 0; i < D; i++)
+      for (int j = 0; j < D; j++) w.w2q[(k * D + i) * D + j] = splat(i == j ? 1.0 : 0.0);
+  }
+  factor(w, w.w2l, w.w2q, run);
+  for (int i = 0; i < n; i++) w.b_z[i] = -w.c[i];
+  for (int k = 0; k < K; k++) w.b_z[k * D] -= w.h_l[k];  // + Gᵀh, G = −e_n on the ray (h_l = 0 if unused)
+  chol_solve(n, w.L, w.b_z, w.z);
+  for (int k = 0; k < K; k++) {
+    w.s_l[k] = sel(w.onl[k], w.h_l[k] + w.z[k * D], one);
+    for (int i = 0; i < D; i++) w.s_q[k * D + i] = sel(w.on[k], w.z[k * D + i], i == 0 ? one : zero);
+  }
+  V shift_s = worst(w, 1.0), shift_l = worst(w, -1.0);
+  V add_s = sel(shift_s >= -1e-8, o.margin + shift_s, zero);
+  V add_l = sel(shift_l >= -1e-8, o.margin + shift_l, zero);
+  for (int k = 0; k < K; k++) {
+    w.lam_l[k] = sel(w.onl[k], -w.s_l[k] + add_l, one);
+    w.s_l[k] = sel(w.onl[k], w.s_l[k] + add_s, one);
+    for (int i = 0; i < D; i++) {
+      V* s = w.s_q + k * D + i;
+      V* l = w.lam_q + k * D + i;
+      V e = i == 0 ? one : zero;
+      M use = w.on[k];  // (never set for D = 1)
+      *l = sel(use, -*s + (i == 0 ? add_l : zero), e);
+      *s = sel(use, *s + (i == 0 ? add_s : zero), e);
+    }
+  }
+  if (soc)
+    for (int k = 0; k < K; k++) {
+      nt_scaling<D>(w.s_q + k * D, w.lam_q + k * D, w.Wq + k * D * D, w.Wqi + k * D * D);
+      for (int i = 0; i < D; i++) {
+        V t = zero;
+        for (int j = 0; j < D; j++) t += w.Wq[k * D * D + i * D + j] * w.lam_q[k * D + j];
+        w.lt_q[k * D + i] = t;
+      }
+    }
+
+  V best_res = inf, best_age = zero, tau = zero, step = zero;
+  for (i64 it = 0; it <= o.max_iter; it++) {
+    // ---- residuals ----
+    V zmax = one;
+    for (int i = 0; i < n; i++) {
+      V t = w.c[i];
+      for (int j = 0; j < n; j++) t += w.P[i * n + j] * w.z[j];
+      w.r_z[i] = t;
+      zmax = vmax(zmax, vabs(w.z[i]));
+    }
+    V pres = zero, gap = zero;
+    for (int k = 0; k < K; k++) {
+      w.r_z[k * D] -= sel(w.onl[k], w.lam_l[k], zero);
+      w.r_l[k] = sel(w.onl[k], -w.z[k * D] + w.s_l[k] - w.h_l[k], zero);
+      pres = vmax(pres, vabs(w.r_l[k]));
+      gap += sel(w.onl[k], w.s_l[k] * w.lam_l[k], zero);
+      for (int i = 0; i < D; i++) {
+        int r = k * D + i;
+        if (soc) w.r_z[r] -= sel(w.on[k], w.lam_q[r], zero);
+        w.r_q[r] = soc ? sel(w.on[k], -w.z[r] + w.s_q[r], zero) : zero;
+        pres = vmax(pres, vabs(w.r_q[r]));
+        if (soc) gap += sel(w.on[k], w.s_q[r] * w.lam_q[r], zero);
+      }
+    }
+    V dres = zero;
+    for (int i = 0; i < n; i++) dres = vmax(dres, vabs(w.r_z[i]));
+    V res = vmax(vmax(pres, dres), gap) / zmax;
+    if (it < T)
+      for (int l = 0; l < LANES; l++)
+        if (run[l] && trace[l]) {
+          double* tr = trace[l] + 4 * it;
+          tr[0] = pres[l], tr[1] = dres[l], tr[2] = gap[l], tr[3] = step[l];
+        }
+    M fin = finite(res);
+    run &= fin;  // a non-finite residual ends the lane (status by its best iterate, below)
+    M better = run & (res < best_res);
+    if (any(better)) {
+      best_res = sel(better, res, best_res);
+      for (int i = 0; i < n; i++) {
+        w.zb[i] = sel(better, w.z[i], w.zb[i]);
+        w.sqb[i] = sel(better, w.s_q[i], w.sqb[i]);
+        w.lqb[i] = sel(better, w.lam_q[i], w.lqb[i]);
+      }
+      for (int k = 0; k < K; k++) {
+        w.slb[k] = sel(better, w.s_l[k], w.slb[k]);
+        w.llb[k] = sel(better, w.lam_l[k], w.llb[k]);
+      }
+    }
+    best_age = sel(better, zero, best_age + 1.0);
+    M conv = run & (res <= o.tol);
+    M unb = run & ~conv & (zmax > 1e12);
+    for (int l = 0; l < LANES; l++) {
+      if (conv[l]) stat[l] = CONVERGED;
+      if (unb[l]) stat[l] = UNBOUNDED;
+    }
+    run &= ~conv & ~unb & (best_age < 5.0);
+    if (it == o.max_iter || !any(run)) break;
+    for (int l = 0; l < LANES; l++) its[l] += run[l] ? 1 : 0;
+
+    // ---- scaling and factorisation ----
+    for (int k = 0; k < K; k++) {
+      w.w2l[k] = w.lam_l[k] / w.s_l[k];
+      w.lt_l[k] = vsqrt(w.s_l[k] * w.lam_l[k]);
+      if (soc) {
+        const V* Wi = w.Wqi + k * D * D;
+        for (int i = 0; i < D; i++)
+          for (int j = 0; j < D; j++) {
+            V t = zero;
+            for (int m = 0; m < D; m++) t += Wi[i * D + m] * Wi[j * D + m];
+            w.w2q[(k * D + i) * D + j] = t;
+          }
+      }
+    }
+    M ok = factor(w, w.w2l, w.w2q, run);
+    M bad = run & ~ok;
+    for (int l = 0; l < LANES; l++)
+      if (bad[l]) stat[l] = NUMERICAL;
+    run &= ok;
+    if (!any(run)) break;
+
+    M refine = gap < o.refine_tol * zmax;
+    for (int phase = 0; phase < 2; phase++) {
+      // complementarity right-hand side
+      for (int k = 0; k < K; k++) {
+        w.rc_l[k] = -w.lt_l[k] * w.lt_l[k] + (phase ? tau - w.A_dsl[k] * w.A_dll[k] : zero);
+        if (soc) {
+          V t1[D], t2[D];
+          jprod<D>(w.lt_q + k * D, w.lt_q + k * D, t1);
+          if (phase) jprod<D>(w.A_dsq + k * D, w.A_dlq + k * D, t2);
+          for (int i = 0; i < D; i++)
+            w.rc_q[k * D + i] = -t1[i] + (phase ? -t2[i] + (i == 0 ? tau : zero) : zero);
+        }
+      }
+      // first solve: b = −r
+      for (int i = 0; i < n; i++) w.b_z[i] = -w.r_z[i], w.e_q[i] = -w.r_q[i];
+      for (int k = 0; k < K; k++) w.e_l[k] = -w.r_l[k];
+      newton(w, w.e_l, w.e_q, w.rc_l, w.rc_q);
+      for (int i = 0; i < n; i++) w.dz2[i] = w.dz[i], w.A_dsq[i] = w.dst_q[i], w.A_dlq[i] = w.dlt_q[i];
+      for (int k = 0; k < K; k++) w.A_dsl[k] = w.ds_l[k], w.A_dll[k] = w.dl_l[k];
+      if (any(run & refine)) {
+        // refinement (near the solution, where W is badly conditioned): residuals of the unscaled equations
+        for (int i = 0; i < n; i++) {
+          V t = -w.r_z[i];
+          for (int j = 0; j < n; j++) t -= w.P[i * n + j] * w.dz[j];
+          w.b_z[i] = t;
+        }
+        for (int k = 0; k < K; k++) {
+          w.b_z[k * D] += sel(w.onl[k], w.dl_l[k], zero);
+          w.e_l[k] = sel(w.onl[k], -w.r_l[k] + w.dz[k * D] - w.ds_l[k], zero);
+          w.ec_l[k] = sel(w.onl[k],
+                          w.rc_l[k] - w.lt_l[k] * (w.ds_l[k] * w.lt_l[k] / w.s_l[k] + w.dl_l[k] * w.s_l[k] / w.lt_l[k]),
+                          zero);
+          if (soc) {
+            const V* Wq = w.Wq + k * D * D;
+            const V* Wqi = w.Wqi + k * D * D;
+            V t2[D], t1[D];
+            for (int i = 0; i < D; i++) {
+              V dlq = zero, dsq = zero;
+              for (int j = 0; j < D; j++) {
+                dlq += Wqi[i * D + j] * w.dlt_q[k * D + j];
+                dsq += Wq[j * D + i] * w.dst_q[k * D + j];
+              }
+              w.b_z[k * D + i] += sel(w.on[k], dlq, zero);
+              w.e_q[k * D + i] = sel(w.on[k], -w.r_q[k * D + i] + w.dz[k * D + i] - dsq, zero);
+              t2[i] = w.dst_q[k * D + i] + w.dlt_q[k * D + i];
+            }
+            jprod<D>(w.lt_q + k * D, t2, t1);
+            for (int i = 0; i < D; i++) w.ec_q[k * D + i] = sel(w.on[k], w.rc_q[k * D + i] - t1[i], zero);
+          } else {
+            for (int i = 0; i < D; i++) w.e_q[k * D + i] = w.ec_q[k * D + i] = zero;
+          }
+        }
+        newton(w, w.e_l, w.e_q, w.ec_l, w.ec_q);
+        for (int i = 0; i < n; i++) {
+          w.dz[i] = sel(refine, w.dz[i] + w.dz2[i], w.dz2[i]);
+          w.A_dsq[i] += sel(refine, w.dst_q[i], zero);
+          w.A_dlq[i] += sel(refine, w.dlt_q[i], zero);
+        }
+        for (int k = 0; k < K; k++) {
+          w.A_dsl[k] += sel(refine, w.ds_l[k], zero);
+          w.A_dll[k] += sel(refine, w.dl_l[k], zero);
+        }
+      } else {
+        for (int i = 0; i < n; i++) w.dz[i] = w.dz2[i];
+      }
+      for (int i = 0; i < n; i++) w.A_dz[i] = w.dz[i];
+      // step length
+      V alpha = inf;
+      for (int k = 0; k < K; k++) {
+        M u = w.onl[k];
+        alpha = sel(u & (w.A_dsl[k] < 0.0), vmin(alpha, -w.s_l[k] / w.A_dsl[k]), alpha);
+        alpha = sel(u & (w.A_dll[k] < 0.0), vmin(alpha, -w.lam_l[k] / w.A_dll[k]), alpha);
+        if (soc) {
+          V a1 = soc_max_step<D>(w.lt_q + k * D, w.A_dsq + k * D);
+          V a2 = soc_max_step<D>(w.lt_q + k * D, w.A_dlq + k * D);
+          alpha = sel(w.on[k], vmin(alpha, vmin(a1, a2)), alpha);
+        }
+      }
+      if (phase == 0) {
+        V a_aff = vmin(alpha, one);
+        V gap_aff = zero;
+        for (int k = 0; k < K; k++) {
+          gap_aff += sel(w.onl[k], (w.s_l[k] + a_aff * w.A_dsl[k]) * (w.lam_l[k] + a_aff * w.A_dll[k]), zero);
+          if (soc)
+            for (int i = 0; i < D; i++) {
+              int r = k * D + i;
+              gap_aff += sel(w.on[k], (w.lt_q[r] + a_aff * w.A_dsq[r]) * (w.lt_q[r] + a_aff * w.A_dlq[r]), zero);
+            }
+        }
+        V sg = vmin(vmax(gap_aff / vmax(gap, splat(1e-300)), zero), one);
+        V sigma = sg * sg * sg;
+        // a short last step: the iterate is badly centred, so centre more (kernel.py)
+        if (it > 0) sigma = sel(step < 0.5, vmax(sigma, splat(0.5)), sigma);
+        tau = sigma * gap / sel(degree > 0.0, degree, one);
+      } else {
+        step = vmin(0.99 * alpha, one);
+      }
+    }
+    // ---- update ----
+    for (int i = 0; i < n; i++) w.z[i] += step * w.A_dz[i];
+    for (int k = 0; k < K; k++) {
+      w.s_l[k] += sel(w.onl[k], step * w.A_dsl[k], zero);
+      w.lam_l[k] += sel(w.onl[k], step * w.A_dll[k], zero);
+      if (soc) {
+        V* Wq = w.Wq + k * D * D;
+        V* Wqi = w.Wqi + k * D * D;
+        V ts[D], tl[D], Ws[D * D], Wsi[D * D];
+        for (int i = 0; i < D; i++) {
+          V ds = zero, dl = zero;
+          for (int j = 0; j < D; j++) {
+            ds += Wq[j * D + i] * w.A_dsq[k * D + j];
+            dl += Wqi[i * D + j] * w.A_dlq[k * D + j];
+          }
+          w.s_q[k * D + i] += sel(w.on[k], step * ds, zero);
+          w.lam_q[k * D + i] += sel(w.on[k], step * dl, zero);
+          ts[i] = w.lt_q[k * D + i] + step * w.A_dsq[k * D + i];  // W⁻ᵀs⁺
+          tl[i] = w.lt_q[k * D + i] + step * w.A_dlq[k * D + i];  // Wλ⁺
+        }
+        nt_scaling<D>(ts, tl, Ws, Wsi);
+        for (int i = 0; i < D; i++) {
+          V t = zero;
+          for (int j = 0; j < D; j++) t += Ws[i * D + j] * tl[j];
+          w.lt_q[k * D + i] = sel(w.on[k], t, w.lt_q[k * D + i]);
+        }
+        V Wn[D * D], Wni[D * D];
+        for (int i = 0; i < D; i++)
+          for (int j = 0; j < D; j++) {
+            V a = zero, b = zero;
+            for (int m = 0; m < D; m++) {
+              a += Ws[i * D + m] * Wq[m * D + j];
+              b += Wqi[i * D + m] * Wsi[m * D + j];
+            }
+            Wn[i * D + j] = a;
+            Wni[i * D + j] = b;
+          }
+        for (int i = 0; i < D * D; i++) {
+          Wq[i] = sel(w.on[k], Wn[i], Wq[i]);
+          Wqi[i] = sel(w.on[k], Wni[i], Wqi[i]);
+        }
+      }
+    }
+  }
+  for (int l = 0; l < LANES; l++) {
+    double r = best_res[l];
+    if (stat[l] == MAX_ITER && r <= o.acc_tol) stat[l] = INACCURATE;
+    if (degree[l] > 0.0 && !__builtin_isfinite(r)) stat[l] = NUMERICAL;
+    status[l] = stat[l];
+    iters_out[l] = its[l];
+    res_out[l] = degree[l] > 0.0 ? r : 0.0;
+  }
+}
+
+// The batch elements idx[0..m) of the (B, …) arrays, W at a time; see diffcontact_ipm_solve in lanes_module.cpp.
+template <int D>
+static int solve_indices(const double* P, const double* c, const double* low, const unsigned char* on,
+                         const unsigned char* onl, int K, const i64* idx, i64 m, const Options& o, double* z,
+                         double* s_l, double* lam_l, double* s_q, double* lam_q, i64* status, i64* iters,
+                         double* res, double* trace, i64 T) {
+  const i64 n = (i64)K * D;
+  void* mem = nullptr;
+  if (posix_memalign(&mem, 64, sizeof(V) * Work<D>::size(K)) != 0) return -1;
+  V* buf = (V*)mem;
+  Work<D> w;
+  w.carve(buf, K);
+  for (i64 g = 0; g < m; g += LANES) {
+    i64 b[LANES];
+    for (int l = 0; l < LANES; l++) b[l] = idx[g + l < m ? g + l : m - 1];  // the last group is padded
+    for (i64 i = 0; i < n * n; i++)
+      for (int l = 0; l < LANES; l++) w.P[i][l] = P[b[l] * n * n + i];
+    for (i64 i = 0; i < n; i++)
+      for (int l = 0; l < LANES; l++) w.c[i][l] = c[b[l] * n + i];
+    for (int k = 0; k < K; k++)
+      for (int l = 0; l < LANES; l++) {
+        w.onl[k][l] = onl[b[l] * K + k] ? -1 : 0;
+        w.on[k][l] = (D > 1 && on[b[l] * K + k]) ? -1 : 0;
+        w.h_l[k][l] = onl[b[l] * K + k] ? -low[b[l] * K + k] : 0.0;
+      }
+    double* tr[LANES];
+    for (int l = 0; l < LANES; l++) tr[l] = (T > 0 && g + l < m) ? trace + b[l] * T * 4 : nullptr;
+    i64 st[LANES], it[LANES];
+    double r[LANES];
+    solve_group<D>(w, o, st, it, r, tr, T);
+    for (int l = 0; l < LANES && g + l < m; l++) {
+      i64 e = b[l];
+      for (i64 i = 0; i < n; i++) {
+        z[e * n + i] = w.zb[i][l];
+        s_q[e * n + i] = w.sqb[i][l];
+        lam_q[e * n + i] = w.lqb[i][l];
+      }
+      for (int k = 0; k < K; k++) {
+        s_l[e * K + k] = w.slb[k][l];
+        lam_l[e * K + k] = w.llb[k][l];
+      }
+      status[e] = st[l];
+      iters[e] = it[l];
+      res[e] = r[l];
+    }
+  }
+  free(mem);
+  return 0;
+}
+
+}  // namespace NS

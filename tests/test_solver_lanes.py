@@ -1,0 +1,53 @@
+"""The compiled interior-point kernel: every lane width this CPU runs gives the same iterates (float64)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from solver_oracle import random_instance
+
+from diffcontact.solver import ipm, lanes, scaling
+from diffcontact.solver.exact import contact_dims
+
+
+def _standard_form(K, d, B, seed):
+    """A batch with frictionless, inactive and lower-bounded contacts mixed in, B not a multiple of any width."""
+    gen = torch.Generator().manual_seed(seed)
+    A, q, mu, lower = random_instance(gen, B, K, d)
+    active = torch.rand(B, K, generator=gen) > 0.2
+    active[0] = False  # an element without any contact
+    arrays = scaling.scale_batch(A.numpy(), q.numpy(), mu.numpy(), lower.numpy(), active.numpy(), contact_dims(d))
+    _, P, c, l_hat, *_, on_q, on_l, _ = (torch.from_numpy(a) for a in arrays)
+    return P, c, l_hat, on_q, on_l
+
+
+@pytest.fixture
+def restore_width():
+    yield
+    lanes.select_width()
+
+
+@pytest.mark.parametrize("d,K", [(1, 4), (2, 3), (3, 5)])
+def test_lane_widths_agree(d, K, restore_width):
+    data = _standard_form(K, d, B=23, seed=11 * d + K)
+    results = {}
+    for width in lanes.supported_widths():
+        lanes.select_width(width)
+        trace = np.zeros((23, 8, 4))
+        res = ipm.solve_ipm(*data, d, polish_steps=0, trace=trace)  # the interior-point iterates alone
+        results[width] = (res, trace)
+    ref, ref_trace = results[lanes.supported_widths()[0]]
+    assert (ref.status == ipm.CONVERGED).all()
+    assert ref.iterations[0] == 0 and (ref.z[0] == 0).all()
+    assert (ref_trace[1:, 0, 2] > 0).all()  # the trace holds the gap of the first iterate
+    for res, trace in results.values():
+        assert torch.equal(res.status, ref.status) and torch.equal(res.iterations, ref.iterations)
+        for name in ("z", "s_l", "lam_l", "s_q", "lam_q"):
+            assert torch.allclose(getattr(res, name), getattr(ref, name), rtol=0, atol=1e-9), name
+        assert np.allclose(trace, ref_trace, rtol=1e-6, atol=1e-12)
+
+
+def test_unknown_width_is_refused(restore_width):
+    with pytest.raises(ValueError, match="lane width 16"):
+        lanes.select_width(16)
