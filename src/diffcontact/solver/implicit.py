@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from diffcontact.solver import exact, scaling
+from diffcontact.solver import exact, lanes, scaling
 from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.ipm import IPMResult
 
@@ -83,15 +83,14 @@ class ImplicitConeQP(torch.autograd.Function):
 def adjoint_solve(res: IPMResult, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Solve Kᵀ[u; v] = [g; 0] (module docstring); returns u: (B, n) and the rays' v: (B, K).
 
-    Solved per element in the compiled kernel; where K is singular (a degenerate solution: a contact exactly
+    Solved in the compiled kernel (``lanes.py``); where K is singular (a degenerate solution: a contact exactly
     at a stick/slip or touch/separate switch) the dense system is solved by least squares instead.
     """
     arrays = [
         np.ascontiguousarray(t.numpy())
         for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l, g.detach().to(torch.float64))
     ]
-    d = res.s_q.shape[-1]
-    u, v_l, ok = exact.adjoint_batch(*arrays[:7], contact_dims(d), arrays[7])
+    u, v_l, ok = lanes.adjoint(*arrays[:7], res.s_q.shape[-1], arrays[7])
     u, v_l, ok = torch.from_numpy(u), torch.from_numpy(v_l), torch.from_numpy(ok)
     if not ok.all():
         u_ls, v_ls = _adjoint_lstsq(res, g, ~ok)

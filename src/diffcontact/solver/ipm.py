@@ -11,9 +11,9 @@ The method is Mehrotra's predictor–corrector with Nesterov–Todd scaling (as 
 reduced Newton matrix H = P + GᵀW⁻²G is P plus a d×d block per contact; it is positive definite even when P is
 singular, and one Cholesky factor serves both directions of an iteration.  The iterations run in a compiled
 kernel (``lanes.py``) that solves several problems at once in the lanes of SIMD vectors, up to the tolerance
-IPM_TOL; Newton steps on the exact optimality conditions then polish the solution to rounding accuracy
-(``exact.polish``).  Where polishing does not reach rounding level (a degenerate solution), the method is run
-again to the full tolerance.
+IPM_TOL; Newton steps on the exact optimality conditions then polish the solution to rounding accuracy (in the
+same kernel, ``lanes/exact_lanes.hpp``).  Where polishing does not reach rounding level (a degenerate solution),
+the method is run again to the full tolerance.
 """
 
 from __future__ import annotations
@@ -23,8 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from diffcontact.solver import exact, lanes
-from diffcontact.solver.exact import CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED, contact_dims  # noqa: F401
+from diffcontact.solver import lanes
+
+# per-element status codes, the same in the compiled kernel (lanes/ipm_lanes.hpp)
+CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
 
 IPM_TOL = 1e-5  # the interior-point method's target before polishing (measured fastest in 1e-8 … 1e-3)
 
@@ -92,27 +94,26 @@ def solve_ipm(
     elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
         raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
     idx = np.arange(B, dtype=np.int64)
+    again = np.zeros(B, dtype=np.bool_)
     passes = 2 if polish_steps > 0 and tol < IPM_TOL else 1
     for attempt in range(passes):
-        tol_ipm = max(tol, IPM_TOL) if polish_steps > 0 and attempt == 0 else tol
         lanes.solve(
             *data,
             d,
             idx,
-            tol=tol_ipm,
+            tol_ipm=max(tol, IPM_TOL) if polish_steps > 0 and attempt == 0 else tol,
+            tol=tol,
             acc_tol=acceptable_tol,
             max_iter=max_iter,
             margin=start_margin,
             refine_tol=IPM_TOL,
+            polish_steps=polish_steps,
+            last=attempt == passes - 1,
             out=out,
+            again=again,
             trace=trace,
         )
-        last = attempt == passes - 1
-        z, s_l, lam_l, s_q, lam_q, status, iters, res = out
-        again = exact.polish_batch(
-            *data, contact_dims(d), idx, z, s_l, lam_l, s_q, lam_q, status, res, polish_steps, tol, acceptable_tol, last
-        )
-        idx = idx[again]
+        idx = idx[again[idx]]
         if not len(idx):
             break
     z, s_l, lam_l, s_q, lam_q, status, iterations, residual = (torch.from_numpy(a) for a in out)

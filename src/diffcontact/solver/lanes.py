@@ -1,4 +1,7 @@
-"""The interior-point method's compiled kernel (``lanes/ipm_lanes.hpp``): W problems at a time in SIMD lanes.
+"""The solver's compiled kernel (``lanes/*.hpp``): W problems at a time in the lanes of SIMD vectors.
+
+Two entry points: the interior-point method followed by polishing (``solve``), and the adjoint solve of the
+backward pass (``adjoint``).
 
 Built with the package (``setup.py``) and called through ctypes, which releases the GIL, so the batch is split
 among threads here.  The lane width (8 with AVX-512, 4 with AVX2, else 2) is chosen from the CPU at run time;
@@ -12,6 +15,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
+import numpy as np
 
 from diffcontact.solver import _lanes
 
@@ -23,7 +27,10 @@ _lib.diffcontact_ipm_width.restype = ctypes.c_int
 _solve = _lib.diffcontact_ipm_solve
 _solve.restype = ctypes.c_int
 _P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-_solve.argtypes = [_P] * 5 + [_I, _I, _P, _I, _D, _D, _I, _D, _D] + [_P] * 9 + [_I]
+_solve.argtypes = [_P] * 5 + [_I, _I, _P, _I, _D, _D, _D, _I, _D, _D, _I, _I] + [_P] * 10 + [_I]
+_adjoint = _lib.diffcontact_adjoint_solve
+_adjoint.restype = ctypes.c_int
+_adjoint.argtypes = [_P] * 7 + [_I, _I, _P, _I, _I, _P, _P, _P]
 
 
 def supported_widths() -> list[int]:
@@ -47,35 +54,82 @@ select_width()
 _pool: ThreadPoolExecutor | None = None
 
 
-def solve(P, c, low, on, onl, d: int, idx, *, tol, acc_tol, max_iter, margin, refine_tol, out, trace) -> None:
-    """Run the interior-point method on the batch elements ``idx`` (int64) in place of ``out``.
-
-    P: (B, n, n), c: (B, n), low: (B, K) float64; on, onl: (B, K) bool (C-contiguous); out: the tuple
-    (z (B, n), s_l, lam_l (B, K), s_q, lam_q (B, K, d), status, iterations (B,) int64, residual (B,)) written
-    at the rows ``idx``; trace: (B, T, 4) (T may be 0).  Elements are split among ``numba.get_num_threads()``
-    threads in runs of whole lane groups.
-    """
+def _parallel(run, count: int) -> None:
+    """Call run(start, stop) on contiguous runs of whole lane groups of range(count), one per thread
+    (``numba.get_num_threads()``, the threads of the rest of the solver)."""
     global _pool
-    K = low.shape[1]
-    ptr = [a.ctypes.data for a in (P, c, low, on, onl)]
-    optr = [a.ctypes.data for a in out] + [trace.ctypes.data]
-
-    def run(part):
-        rc = _solve(
-            *ptr, K, d, part.ctypes.data, len(part), tol, acc_tol, max_iter, margin, refine_tol, *optr, trace.shape[1]
-        )
-        if rc != 0:
-            raise MemoryError(f"interior-point kernel: out of memory for K = {K} (code {rc})")
-
     width = _lib.diffcontact_ipm_width()
-    threads = min(numba.get_num_threads(), len(idx) // (2 * width))
+    threads = min(numba.get_num_threads(), count // (2 * width))
     if threads <= 1:
-        run(idx)
+        run(0, count)
         return
     if _pool is None or _pool._max_workers < threads:
-        _pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="diffcontact-ipm")
-    groups = -(-len(idx) // width)
-    bounds = [width * (groups * t // threads) for t in range(threads + 1)]
-    parts = [idx[bounds[t] : min(bounds[t + 1], len(idx))] for t in range(threads)]
-    for f in [_pool.submit(run, p) for p in parts]:
+        _pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="diffcontact-solver")
+    groups = -(-count // width)
+    bounds = [min(count, width * (groups * t // threads)) for t in range(threads + 1)]
+    for f in [_pool.submit(run, bounds[t], bounds[t + 1]) for t in range(threads)]:
         f.result()
+
+
+def _check(rc: int, K: int) -> None:
+    if rc == -1:
+        raise MemoryError(f"contact solver kernel: out of memory for K = {K}")
+    if rc != 0:
+        raise RuntimeError(f"contact solver kernel failed (code {rc})")
+
+
+def solve(
+    P,
+    c,
+    low,
+    on,
+    onl,
+    d: int,
+    idx,
+    *,
+    tol_ipm,
+    tol,
+    acc_tol,
+    max_iter,
+    margin,
+    refine_tol,
+    polish_steps,
+    last,
+    out,
+    again,
+    trace,
+) -> None:
+    """Interior-point method to ``tol_ipm``, then (``polish_steps`` > 0) polishing, of the batch elements ``idx``.
+
+    P: (B, n, n), c: (B, n), low: (B, K) float64; on, onl: (B, K) bool; idx: (m,) int64 (all C-contiguous);
+    out: the tuple (z (B, n), s_l, lam_l (B, K), s_q, lam_q (B, K, d), status, iterations (B,) int64, residual
+    (B,)) written at the rows ``idx``; again: (B,) bool, set where an element did not converge to rounding level
+    and ``last`` is False (see ``ipm.solve_ipm``); trace: (B, T, 4) (T may be 0).
+    """
+    K = low.shape[1]
+    ptr = [a.ctypes.data for a in (P, c, low, on, onl)]
+    optr = [a.ctypes.data for a in out] + [again.ctypes.data, trace.ctypes.data]
+    opts = (tol_ipm, tol, acc_tol, max_iter, margin, refine_tol, polish_steps, int(last))
+
+    def run(start, stop):
+        part = idx[start:stop]
+        _check(_solve(*ptr, K, d, part.ctypes.data, len(part), *opts, *optr, trace.shape[1]), K)
+
+    _parallel(run, len(idx))
+
+
+def adjoint(P, s_l, lam_l, s_q, lam_q, on, onl, d: int, g):
+    """Solve Kᵀ[u; v] = [g; 0] per element (``implicit.py``), the weakly active cones of singular elements taken
+    as inactive.  Arrays as in ``solve`` (C-contiguous), g: (B, n).  Returns u: (B, n), the rays' v: (B, K) and
+    ok: (B,) bool (False where K is singular even so)."""
+    B, K = s_l.shape
+    u = np.empty((B, K * d))
+    v_l = np.empty((B, K))
+    ok = np.empty(B, dtype=np.bool_)
+    ptr = [a.ctypes.data for a in (P, s_l, lam_l, s_q, lam_q, on, onl)]
+
+    def run(start, stop):
+        _check(_adjoint(*ptr, K, d, g.ctypes.data, start, stop, u.ctypes.data, v_l.ctypes.data, ok.ctypes.data), K)
+
+    _parallel(run, B)
+    return u, v_l, ok

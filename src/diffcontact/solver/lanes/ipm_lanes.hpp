@@ -273,8 +273,11 @@ static V worst(const Work<D>& w, double sign) {
 }
 
 struct Options {
-  double tol, acc_tol, margin, refine_tol;
+  double tol, acc_tol, margin, refine_tol;  // tol: the interior-point method's target
   i64 max_iter;
+  double final_tol;  // what counts as converged after polishing
+  int polish_steps;  // at most this many factorisations per polishing pass (0: none)
+  bool last;         // the last pass: no element is marked for another one
 };
 
 // One group; its data gathered into w (P, c, onl, on and low in h_l as −low).  Writes the best iterate to the
@@ -566,56 +569,6 @@ static void solve_group(Work<D>& w, const Options& o, i64* status, i64* iters_ou
     iters_out[l] = its[l];
     res_out[l] = degree[l] > 0.0 ? r : 0.0;
   }
-}
-
-// The batch elements idx[0..m) of the (B, …) arrays, W at a time; see diffcontact_ipm_solve in lanes_module.cpp.
-template <int D>
-static int solve_indices(const double* P, const double* c, const double* low, const unsigned char* on,
-                         const unsigned char* onl, int K, const i64* idx, i64 m, const Options& o, double* z,
-                         double* s_l, double* lam_l, double* s_q, double* lam_q, i64* status, i64* iters,
-                         double* res, double* trace, i64 T) {
-  const i64 n = (i64)K * D;
-  void* mem = nullptr;
-  if (posix_memalign(&mem, 64, sizeof(V) * Work<D>::size(K)) != 0) return -1;
-  V* buf = (V*)mem;
-  Work<D> w;
-  w.carve(buf, K);
-  for (i64 g = 0; g < m; g += LANES) {
-    i64 b[LANES];
-    for (int l = 0; l < LANES; l++) b[l] = idx[g + l < m ? g + l : m - 1];  // the last group is padded
-    for (i64 i = 0; i < n * n; i++)
-      for (int l = 0; l < LANES; l++) w.P[i][l] = P[b[l] * n * n + i];
-    for (i64 i = 0; i < n; i++)
-      for (int l = 0; l < LANES; l++) w.c[i][l] = c[b[l] * n + i];
-    for (int k = 0; k < K; k++)
-      for (int l = 0; l < LANES; l++) {
-        w.onl[k][l] = onl[b[l] * K + k] ? -1 : 0;
-        w.on[k][l] = (D > 1 && on[b[l] * K + k]) ? -1 : 0;
-        w.h_l[k][l] = onl[b[l] * K + k] ? -low[b[l] * K + k] : 0.0;
-      }
-    double* tr[LANES];
-    for (int l = 0; l < LANES; l++) tr[l] = (T > 0 && g + l < m) ? trace + b[l] * T * 4 : nullptr;
-    i64 st[LANES], it[LANES];
-    double r[LANES];
-    solve_group<D>(w, o, st, it, r, tr, T);
-    for (int l = 0; l < LANES && g + l < m; l++) {
-      i64 e = b[l];
-      for (i64 i = 0; i < n; i++) {
-        z[e * n + i] = w.zb[i][l];
-        s_q[e * n + i] = w.sqb[i][l];
-        lam_q[e * n + i] = w.lqb[i][l];
-      }
-      for (int k = 0; k < K; k++) {
-        s_l[e * K + k] = w.slb[k][l];
-        lam_l[e * K + k] = w.llb[k][l];
-      }
-      status[e] = st[l];
-      iters[e] = it[l];
-      res[e] = r[l];
-    }
-  }
-  free(mem);
-  return 0;
 }
 
 }  // namespace NS

@@ -1,0 +1,405 @@
+// Newton's method on the exact optimality conditions, W problems at a time (see exact.py for the equations):
+// polishing of the interior-point solution and the adjoint solve of the backward pass.
+//
+// The linearised conditions K (unknowns dz, the rays' dλ_l, the cones' dλ_q) are reduced exactly to n + K unknowns
+// (dz, dλ_l): a used cone's multiplier enters its contact's stationarity rows with coefficient −1, so those rows
+// give dλ_q = Stat·x − b_stat, and its complementarity rows E dz_k + C dλ_q = b_cone become
+// (E + C·Stat) x = b_cone + C b_stat, with C = L(s), E = L(λ) (arrow matrices), or C = I, E = 0 for a weakly
+// active cone taken as inactive.  A contact without a cone keeps its stationarity rows (C = I, E = 0 as well, with
+// its dλ_q = b_cone decoupled); a ray not in use is an identity row.  The reduced matrix, the same size in every
+// lane, is factorised by LU with partial pivoting (pivots chosen per lane).  Included by lanes_entry.hpp after
+// ipm_lanes.hpp (same namespace and types).
+
+namespace NS {
+
+// The exact conditions of one group: reduced matrix and its LU factors, per-cone coefficients, residuals.
+template <int D>
+struct Exact {
+  int K, n, N;       // N = n + K
+  V *R, *R2;         // N × N: current factors and a new factorisation
+  M *piv, *piv2;     // N: pivot row of each step, per lane
+  V *C;              // K × D × D: coefficient of dλ_q in the cone rows
+  M *used, *wray;    // K: cone eliminated (in use); ray taken as identity (weak)
+  V *scale, *scale2; // 1: Frobenius norm (singularity test)
+  V *x, *dx, *y;     // N + n: right-hand side, solution (stationarity, rays, cones), reduced work
+  V *r_z, *r_l, *r_q, *comp_l, *comp_q;  // residuals at the current point
+  V *t_z, *t_l, *t_q, *tc_l, *tc_q;      // residuals at the trial point
+  V *zt, *slt, *llt, *sqt, *lqt;         // trial point
+  V *h_l;
+
+  static i64 size(int K) {
+    i64 n = (i64)K * D, N = n + K;
+    return 2 * N * N + 2 * N + (i64)K * D * D + 2 * K + 2 + 3 * (N + n) + 3 * n + 2 * K + 3 * n + 2 * K + 3 * n +
+           2 * K + K;
+  }
+  void carve(V* buf, int K_) {
+    K = K_;
+    n = K * D;
+    N = n + K;
+    V* p = buf;
+    auto take = [&p](i64 m) {
+      V* r = p;
+      p += m;
+      return r;
+    };
+    R = take((i64)N * N), R2 = take((i64)N * N);
+    piv = (M*)take(N), piv2 = (M*)take(N);
+    for (int i = 0; i < N; i++) piv[i] = piv2[i] = M{} + i;  // (lanes never factorised still solve in bounds)
+    C = take((i64)K * D * D);
+    used = (M*)take(K), wray = (M*)take(K);
+    scale = take(1), scale2 = take(1);
+    x = take(N + n), dx = take(N + n), y = take(N + n);
+    r_z = take(n), r_q = take(n), comp_q = take(n), r_l = take(K), comp_l = take(K);
+    t_z = take(n), t_q = take(n), tc_q = take(n), t_l = take(K), tc_l = take(K);
+    zt = take(n), sqt = take(n), lqt = take(n), slt = take(K), llt = take(K);
+    h_l = take(K);
+  }
+};
+
+// A ray / cone whose multiplier is negligible next to its slack (exact._weak_ray, exact._weak_cone).
+static inline M weak_ray(V s, V lam) { return lam <= 1e-6 * vmax(splat(1.0), vabs(s)); }
+template <int D>
+static inline M weak_cone(const V* s, const V* lam) {
+  V ns = splat(0.0), nl = splat(0.0);
+  for (int i = 0; i < D; i++) ns += s[i] * s[i], nl += lam[i] * lam[i];
+  return vsqrt(nl) <= 1e-6 * vmax(splat(1.0), vsqrt(ns));
+}
+
+// Exact KKT residuals (complementarity s∘λ = 0) at (z, s, λ) into r_*, comp_*; returns their max relative to
+// max(1, ‖z‖∞), counting any violation of the cones as well (exact._kkt_residual).
+template <int D>
+static V kkt_residual(const Work<D>& w, const V* h_l, const V* z, const V* s_l, const V* lam_l, const V* s_q,
+                      const V* lam_q, V* r_z, V* r_l, V* r_q, V* comp_l, V* comp_q) {
+  const int K = w.K, n = w.n;
+  const V zero = splat(0.0);
+  V zmax = splat(1.0), worst = zero;
+  for (int i = 0; i < n; i++) {
+    V t = w.c[i];
+    for (int j = 0; j < n; j++) t += w.P[i * n + j] * z[j];
+    r_z[i] = t;
+    zmax = vmax(zmax, vabs(z[i]));
+  }
+  for (int k = 0; k < K; k++) {
+    M ul = w.onl[k], uq = w.on[k];
+    r_z[k * D] -= sel(ul, lam_l[k], zero);
+    r_l[k] = sel(ul, -z[k * D] + s_l[k] - h_l[k], zero);
+    comp_l[k] = sel(ul, s_l[k] * lam_l[k], zero);
+    worst = sel(ul, vmax(worst, vmax(vmax(vabs(r_l[k]), vabs(comp_l[k])), vmax(-s_l[k], -lam_l[k]))), worst);
+    if (D > 1) {
+      V rs = zero, rl = zero, dot = zero;
+      for (int i = 0; i < D; i++) {
+        int r = k * D + i;
+        r_z[r] -= sel(uq, lam_q[r], zero);
+        r_q[r] = sel(uq, -z[r] + s_q[r], zero);
+        dot += s_q[r] * lam_q[r];
+        if (i > 0) rs += s_q[r] * s_q[r], rl += lam_q[r] * lam_q[r];
+      }
+      comp_q[k * D] = sel(uq, dot, zero);
+      for (int i = 1; i < D; i++)
+        comp_q[k * D + i] = sel(uq, s_q[k * D] * lam_q[k * D + i] + lam_q[k * D] * s_q[k * D + i], zero);
+      V wq = vmax(vsqrt(rs) - s_q[k * D], vsqrt(rl) - lam_q[k * D]);
+      for (int i = 0; i < D; i++) wq = vmax(wq, vmax(vabs(r_q[k * D + i]), vabs(comp_q[k * D + i])));
+      worst = sel(uq, vmax(worst, wq), worst);
+    } else {
+      r_q[k] = zero, comp_q[k] = zero;
+    }
+  }
+  for (int i = 0; i < n; i++) worst = vmax(worst, vabs(r_z[i]));
+  return worst / zmax;
+}
+
+// Assemble the reduced matrix at (s, λ) into e.R2 (and e.C, e.used, e.wray for the lanes of `mask`), then its LU
+// factors with pivots in e.piv2.  use_weak: lanes whose weakly active cones and rays are taken as inactive.
+// Returns the lanes where it is nonsingular (pivots above 1e-13 of the Frobenius norm).
+template <int D>
+static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, const V* s_q, const V* lam_q,
+                M use_weak, M mask) {
+  const int K = e.K, n = e.n, N = e.N;
+  const V zero = splat(0.0), one = splat(1.0);
+  V* R = e.R2;
+  for (i64 i = 0; i < (i64)N * N; i++) R[i] = zero;
+  for (int k = 0; k < K; k++) {
+    M uq = w.on[k];
+    M weak = uq & use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
+    M arrow = uq & ~weak;
+    e.used[k] = mask ? uq : e.used[k];
+    const V* s = s_q + k * D;
+    const V* lam = lam_q + k * D;
+    V Ck[D * D];
+    for (int i = 0; i < D; i++)
+      for (int j = 0; j < D; j++) {
+        V l = (i == 0) ? s[j] : (j == 0 ? s[i] : (j == i ? s[0] : zero));  // L(s)[i, j]
+        Ck[i * D + j] = sel(arrow, l, i == j ? one : zero);
+        e.C[(k * D + i) * D + j] = sel(mask, Ck[i * D + j], e.C[(k * D + i) * D + j]);
+      }
+    for (int i = 0; i < D; i++) {
+      V* row = R + (i64)(k * D + i) * N;
+      for (int j = 0; j < D; j++) {
+        V cij = Ck[i * D + j];
+        const V* Prow = w.P + (i64)(k * D + j) * n;
+        for (int t = 0; t < n; t++) row[t] += cij * Prow[t];
+      }
+      row[n + k] = sel(w.onl[k], -Ck[i * D], zero);  // Stat[kD, n + k] = −1 for a ray in use
+      for (int j = 0; j < D; j++) {
+        V l = (i == 0) ? lam[j] : (j == 0 ? lam[i] : (j == i ? lam[0] : zero));  // L(λ)[i, j]
+        row[k * D + j] += sel(arrow, l, zero);
+      }
+    }
+    M ul = w.onl[k];
+    M wr = ~ul | (use_weak & weak_ray(s_l[k], lam_l[k]));
+    e.wray[k] = mask ? wr : e.wray[k];
+    V* row = R + (i64)(n + k) * N;
+    row[k * D] = sel(wr, zero, lam_l[k]);
+    row[n + k] = sel(wr, one, s_l[k]);
+  }
+  // LU with partial pivoting, per lane: reciprocal pivots on the diagonal
+  V sc = zero;
+  for (i64 i = 0; i < (i64)N * N; i++) sc += R[i] * R[i];
+  sc = vsqrt(sc);
+  M ok = (M{} == 0);
+  for (int col = 0; col < N; col++) {
+    V best = vabs(R[(i64)col * N + col]);
+    M p = M{} + col;
+    for (int r = col + 1; r < N; r++) {
+      V a = vabs(R[(i64)r * N + col]);
+      M gt = a > best;
+      best = sel(gt, a, best);
+      p = gt ? (M{} + r) : p;
+    }
+    ok &= best > 1e-13 * sc;
+    e.piv2[col] = p;
+    for (int l = 0; l < LANES; l++) {
+      i64 pl = p[l];
+      if (pl != col)
+        for (int j = 0; j < N; j++) {
+          double t = R[(i64)col * N + j][l];
+          R[(i64)col * N + j][l] = R[pl * N + j][l];
+          R[pl * N + j][l] = t;
+        }
+    }
+    V d = R[(i64)col * N + col];
+    V inv = 1.0 / sel(d != 0.0, d, one);
+    const V* prow = R + (i64)col * N;
+    for (int r = col + 1; r < N; r++) {
+      V* rr = R + (i64)r * N;
+      V f = rr[col] * inv;
+      rr[col] = f;
+      for (int j = col + 1; j < N; j++) rr[j] -= f * prow[j];
+    }
+    R[(i64)col * N + col] = inv;
+  }
+  *e.scale2 = sc;
+  return ok;
+}
+
+// Keep the new factors (R2, piv2) in the lanes of `mask`.
+template <int D>
+static void keep_factors(Exact<D>& e, M mask) {
+  const i64 NN = (i64)e.N * e.N;
+  for (i64 i = 0; i < NN; i++) e.R[i] = sel(mask, e.R2[i], e.R[i]);
+  for (int i = 0; i < e.N; i++) e.piv[i] = mask ? e.piv2[i] : e.piv[i];
+}
+
+// Solve R y = y (or Rᵀ y = y) in place with the factors in e.R, e.piv.
+template <int D>
+static void lu_solve(const Exact<D>& e, V* y, bool transpose) {
+  const int N = e.N;
+  const V* R = e.R;
+  auto swap = [&](int i) {
+    for (int l = 0; l < LANES; l++) {
+      i64 p = e.piv[i][l];
+      if (p != i) {
+        double t = y[i][l];
+        y[i][l] = y[p][l];
+        y[p][l] = t;
+      }
+    }
+  };
+  if (!transpose) {
+    for (int i = 0; i < N; i++) swap(i);
+    for (int i = 0; i < N; i++)
+      for (int r = i + 1; r < N; r++) y[r] -= R[(i64)r * N + i] * y[i];
+    for (int i = N - 1; i >= 0; i--) {
+      V xi = y[i] * R[(i64)i * N + i];
+      y[i] = xi;
+      for (int r = 0; r < i; r++) y[r] -= R[(i64)r * N + i] * xi;
+    }
+  } else {
+    for (int i = 0; i < N; i++) {
+      V xi = y[i] * R[(i64)i * N + i];
+      y[i] = xi;
+      for (int k = i + 1; k < N; k++) y[k] -= R[(i64)i * N + k] * xi;
+    }
+    for (int i = N - 1; i >= 0; i--)
+      for (int k = 0; k < i; k++) y[k] -= R[(i64)i * N + k] * y[i];
+    for (int i = N - 1; i >= 0; i--) swap(i);
+  }
+}
+
+// Solve K x = b (transpose: Kᵀ x = b) with the factors at hand.  b, x: (b_stat (n), b_ray (K), b_cone (n)).
+template <int D>
+static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool transpose) {
+  const int K = e.K, n = e.n, N = e.N;
+  const V zero = splat(0.0);
+  V* y = e.y;
+  if (!transpose) {
+    for (int k = 0; k < K; k++)
+      for (int i = 0; i < D; i++) {
+        V t = b[N + k * D + i];
+        for (int j = 0; j < D; j++) t += e.C[(k * D + i) * D + j] * b[k * D + j];
+        y[k * D + i] = sel(e.used[k], t, b[k * D + i]);
+      }
+    for (int k = 0; k < K; k++) y[n + k] = b[n + k];
+    lu_solve(e, y, false);
+    for (int i = 0; i < N; i++) x[i] = y[i];
+    for (int k = 0; k < K; k++)
+      for (int i = 0; i < D; i++) {
+        int r = k * D + i;
+        V t = -b[r];
+        for (int j = 0; j < n; j++) t += w.P[(i64)r * n + j] * y[j];
+        if (i == 0) t -= sel(w.onl[k], y[n + k], zero);
+        x[N + r] = sel(e.used[k], t, b[N + r]);
+      }
+  } else {
+    for (int i = 0; i < N; i++) y[i] = b[i];
+    for (int k = 0; k < K; k++)
+      for (int i = 0; i < D; i++) {
+        int r = k * D + i;
+        V g = sel(e.used[k], b[N + r], zero);
+        for (int j = 0; j < n; j++) y[j] += w.P[(i64)r * n + j] * g;
+        if (i == 0) y[n + k] -= sel(w.onl[k], g, zero);
+      }
+    lu_solve(e, y, true);
+    for (int k = 0; k < K; k++) {
+      x[n + k] = y[n + k];
+      for (int i = 0; i < D; i++) {
+        int r = k * D + i;
+        V t = -b[N + r];
+        for (int j = 0; j < D; j++) t += e.C[(k * D + j) * D + i] * y[k * D + j];
+        x[r] = sel(e.used[k], t, y[r]);
+        x[N + r] = sel(e.used[k], y[r], b[N + r]);
+      }
+    }
+  }
+}
+
+// Newton steps (at most `steps` factorisations) from the iterate in w (z, s_l, …) in the lanes of `run`; the
+// factors are reused for chord steps while the residual falls by 100× per step (exact._polish).  Returns the
+// exact KKT residual of each lane's returned point.
+template <int D>
+static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
+  const int K = e.K, n = e.n, N = e.N;
+  const V zero = splat(0.0);
+  V* z = w.zb;
+  V *s_l = w.slb, *lam_l = w.llb, *s_q = w.sqb, *lam_q = w.lqb;
+  V res = kkt_residual(w, w.h_l, z, s_l, lam_l, s_q, lam_q, e.r_z, e.r_l, e.r_q, e.comp_l, e.comp_q);
+  M factored = M{} != 0;  // (all false)
+  V n_factor = zero;
+  for (int iter = 0; iter < 4 * steps; iter++) {
+    run &= ~(res <= 1e-14);
+    M fresh = run & ~factored;
+    M out_of_steps = fresh & (n_factor >= (double)steps);
+    run &= ~out_of_steps;
+    fresh &= ~out_of_steps;
+    if (!any(run)) break;
+    if (any(fresh)) {
+      M ok = factor(e, w, s_l, lam_l, s_q, lam_q, use_weak, fresh);
+      keep_factors(e, fresh);
+      n_factor += sel(fresh, splat(1.0), zero);
+      run &= ~(fresh & ~ok);  // singular: stop (the caller's weak pass or rerun handles it)
+      fresh &= ok;
+      factored |= fresh;
+      if (!any(run)) break;
+    }
+    // right-hand side: −residuals, complementarity linearised with its primal residual
+    V* b = e.x;
+    for (int i = 0; i < n; i++) b[i] = -e.r_z[i];
+    for (int k = 0; k < K; k++) {
+      V ray = -e.comp_l[k] + lam_l[k] * e.r_l[k];
+      b[n + k] = sel(w.onl[k], sel(use_weak & weak_ray(s_l[k], lam_l[k]), -lam_l[k], ray), zero);
+      M weak = use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
+      for (int i = 0; i < D; i++) {
+        int r = k * D + i;
+        V lr;
+        if (i == 0) {
+          lr = zero;
+          for (int j = 0; j < D; j++) lr += lam_q[k * D + j] * e.r_q[k * D + j];
+        } else {
+          lr = lam_q[k * D] * e.r_q[r] + lam_q[r] * e.r_q[k * D];
+        }
+        b[N + r] = sel(w.on[k], sel(weak, -lam_q[r], -e.comp_q[r] + lr), zero);
+      }
+    }
+    V* dx = e.dx;
+    solve_full(e, w, b, dx, false);
+    for (int i = 0; i < n; i++) e.zt[i] = z[i] + dx[i];
+    for (int k = 0; k < K; k++) {
+      M ul = w.onl[k];
+      e.llt[k] = sel(ul, lam_l[k] + dx[n + k], lam_l[k]);
+      e.slt[k] = sel(ul, s_l[k] - e.r_l[k] + dx[k * D], s_l[k]);
+      for (int i = 0; i < D; i++) {
+        int r = k * D + i;
+        e.lqt[r] = sel(w.on[k], lam_q[r] + dx[N + r], lam_q[r]);
+        e.sqt[r] = sel(w.on[k], s_q[r] - e.r_q[r] + dx[r], s_q[r]);
+      }
+    }
+    V nw = kkt_residual(w, w.h_l, e.zt, e.slt, e.llt, e.sqt, e.lqt, e.t_z, e.t_l, e.t_q, e.tc_l, e.tc_q);
+    M acc = run & (nw < res);
+    M rej = run & ~acc;
+    run &= ~(rej & fresh);  // a fresh Newton step that does not help: done
+    factored &= ~rej;       // a chord step that does not help: refactorise at the current point
+    factored &= ~(acc & ~fresh & (nw > 1e-2 * res));
+    res = sel(acc, nw, res);
+    for (int i = 0; i < n; i++) {
+      z[i] = sel(acc, e.zt[i], z[i]);
+      s_q[i] = sel(acc, e.sqt[i], s_q[i]);
+      lam_q[i] = sel(acc, e.lqt[i], lam_q[i]);
+      e.r_z[i] = sel(acc, e.t_z[i], e.r_z[i]);
+      e.r_q[i] = sel(acc, e.t_q[i], e.r_q[i]);
+      e.comp_q[i] = sel(acc, e.tc_q[i], e.comp_q[i]);
+    }
+    for (int k = 0; k < K; k++) {
+      s_l[k] = sel(acc, e.slt[k], s_l[k]);
+      lam_l[k] = sel(acc, e.llt[k], lam_l[k]);
+      e.r_l[k] = sel(acc, e.t_l[k], e.r_l[k]);
+      e.comp_l[k] = sel(acc, e.tc_l[k], e.comp_l[k]);
+    }
+  }
+  return res;
+}
+
+// Polish the best iterates of w in the lanes of `run` (exact.polish): a pass with every cone as it is, then, where
+// that does not reach rounding level, a pass with the weakly active cones taken as inactive (which keeps only
+// what lowers the residual).
+template <int D>
+static V polish(Exact<D>& e, Work<D>& w, int steps, M run) {
+  V r = polish_pass(e, w, steps, M{} != 0, run);
+  M again = run & (r > 1e-15);
+  if (any(again)) {
+    V r2 = polish_pass(e, w, steps, M{} == 0, again);
+    r = sel(again, r2, r);
+  }
+  return r;
+}
+
+// Kᵀ[u; v] = [g; 0] for the elements of one group gathered into w (P, on, onl; the solution in zb, slb, …):
+// returns the lanes where K is nonsingular, with the weakly active cones of singular lanes taken as inactive
+// (exact._adjoint_one); u in e.dx[0..n), the rays' v in e.dx[n..n+K).
+template <int D>
+static M adjoint(Exact<D>& e, Work<D>& w, const V* g) {
+  const int n = e.n, N = e.N;
+  M all = M{} == 0, none = M{} != 0;
+  M ok = factor(e, w, w.slb, w.llb, w.sqb, w.lqb, none, all);
+  keep_factors(e, all);
+  M bad = ~ok;
+  if (any(bad)) {
+    M ok2 = factor(e, w, w.slb, w.llb, w.sqb, w.lqb, all, bad);
+    keep_factors(e, bad);
+    ok |= bad & ok2;
+  }
+  for (int i = 0; i < N + n; i++) e.x[i] = i < n ? g[i] : splat(0.0);
+  solve_full(e, w, e.x, e.dx, true);
+  return ok;
+}
+
+}  // namespace NS
