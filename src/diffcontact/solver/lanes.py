@@ -54,9 +54,13 @@ select_width()
 _pool: ThreadPoolExecutor | None = None
 
 
-def _parallel(run, count: int) -> None:
-    """Call run(start, stop) on contiguous runs of whole lane groups of range(count), one per thread
-    (``numba.get_num_threads()``, the threads of the rest of the solver)."""
+def parallel(run, count: int) -> None:
+    """Call run(start, stop) on contiguous runs of whole lane groups of range(count), one per thread.
+
+    The solver's threads (``numba.get_num_threads()`` of them): Python threads that wait on a lock when idle,
+    running code that releases the GIL (this kernel, numba functions compiled with ``nogil``).  One pool for
+    every stage: OpenMP workers of a ``prange`` would spin after their loop and compete with it for the cores.
+    """
     global _pool
     width = _lib.diffcontact_ipm_width()
     threads = min(numba.get_num_threads(), count // (2 * width))
@@ -115,7 +119,7 @@ def solve(
         part = idx[start:stop]
         _check(_solve(*ptr, K, d, part.ctypes.data, len(part), *opts, *optr, trace.shape[1]), K)
 
-    _parallel(run, len(idx))
+    parallel(run, len(idx))
 
 
 def adjoint(P, s_l, lam_l, s_q, lam_q, on, onl, d: int, g):
@@ -131,5 +135,5 @@ def adjoint(P, s_l, lam_l, s_q, lam_q, on, onl, d: int, g):
     def run(start, stop):
         _check(_adjoint(*ptr, K, d, g.ctypes.data, start, stop, u.ctypes.data, v_l.ctypes.data, ok.ctypes.data), K)
 
-    _parallel(run, B)
+    parallel(run, B)
     return u, v_l, ok

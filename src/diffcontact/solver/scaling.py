@@ -17,33 +17,41 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
+
+from diffcontact.solver import lanes
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
 def scale_batch(A, q, mu, lower, active, dims):
     """A: (B, n, n); q: (B, n); mu, lower: (B, K) float64; active: (B, K) bool; dims: tuple of length d.
 
     Returns (A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu): A_sym = ½(A + Aᵀ)
     (B, n, n); P (B, n, n); c, T, S (B, n); gamma (B,); sigma, l_hat, lower_scale = ∂l̂/∂lower (B, K);
-    on_q (cones used), on_l (rays used), zero_mu (B, K) bool.
+    on_q (cones used), on_l (rays used), zero_mu (B, K) bool.  Run on the solver's threads (``lanes.parallel``).
     """
-    d = len(dims)
     B, K = mu.shape
+    n = K * len(dims)
+    out = (
+        *(np.empty((B, n, n)) for _ in range(2)),
+        *(np.empty((B, n)) for _ in range(3)),
+        np.empty(B),
+        *(np.empty((B, K)) for _ in range(3)),
+        *(np.zeros((B, K), dtype=np.bool_) for _ in range(3)),
+    )
+    A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu = out
+    lanes.parallel(lambda start, stop: _scale_range(A, q, mu, lower, active, dims, *out, start, stop), B)
+    return A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _scale_range(
+    A, q, mu, lower, active, dims, A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu, start, stop
+):
+    """scale_batch for the batch elements start … stop − 1, into the given outputs."""
+    d = len(dims)
+    K = mu.shape[1]
     n = K * d
-    A_sym = np.empty((B, n, n))
-    P = np.empty((B, n, n))
-    c = np.empty((B, n))
-    T = np.empty((B, n))
-    S = np.empty((B, n))
-    gamma = np.empty(B)
-    sigma = np.empty((B, K))
-    l_hat = np.empty((B, K))
-    lower_scale = np.empty((B, K))
-    on_q = np.zeros((B, K), dtype=np.bool_)
-    on_l = np.zeros((B, K), dtype=np.bool_)
-    zero_mu = np.zeros((B, K), dtype=np.bool_)
-    for b in prange(B):
+    for b in range(start, stop):
         As = A_sym[b]
         for i in range(n):
             for j in range(n):
@@ -90,26 +98,38 @@ def scale_batch(A, q, mu, lower, active, dims):
                 r = k * d + i
                 if not active[b, k] or (i > 0 and zero_mu[b, k]):
                     P[b, r, r] += 1.0
-    return A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
 def chain_rule_batch(u, v_l, z, gf, A, q, T, S, gamma, lam_l, on_l, lower_scale, slide, dims, need):
     """The chain rule of the substitution, from the adjoint solution back to the data (see ``implicit.py``).
 
     u, z, gf (∂L/∂f), q, T, S: (B, n); v_l, lam_l, lower_scale, slide: (B, K); A: (B, n, n) the symmetrised A;
     gamma: (B,); on_l: (B, K) bool; need: (4,) bool, which of ∂L/∂A, ∂L/∂q, ∂L/∂μ, ∂L/∂lower to compute.
-    Returns (g_A (B, n, n), g_q (B, n), g_mu (B, K), g_lower (B, K)); arrays not needed are left as zeros of
-    shape (0, …).  In z-space ∂L/∂P = −½(u zᵀ + z uᵀ), ∂L/∂c = −u, ∂L/∂l̂ = λ_l v_l; P = T A T, c = T q/γ, f = γ T z.
+    Returns (g_A (B, n, n), g_q (B, n), g_mu (B, K), g_lower (B, K)); arrays not needed have shape (0, …).
+    In z-space ∂L/∂P = −½(u zᵀ + z uᵀ), ∂L/∂c = −u, ∂L/∂l̂ = λ_l v_l; P = T A T, c = T q/γ, f = γ T z.
     """
-    d = len(dims)
     B, K = v_l.shape
+    n = K * len(dims)
+    grads = (
+        np.empty((B if need[0] else 0, n, n)),
+        np.empty((B if need[1] else 0, n)),
+        np.zeros((B if need[2] else 0, K)),  # (stays 0 for d = 1: no friction)
+        np.empty((B if need[3] else 0, K)),
+    )
+    args = (u, v_l, z, gf, A, q, T, S, gamma, lam_l, on_l, lower_scale, slide, dims, need, *grads)
+    lanes.parallel(lambda start, stop: _chain_rule_range(*args, start, stop), B)
+    return grads
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _chain_rule_range(
+    u, v_l, z, gf, A, q, T, S, gamma, lam_l, on_l, lower_scale, slide, dims, need, g_A, g_q, g_mu, g_lo, start, stop
+):
+    """chain_rule_batch for the batch elements start … stop − 1, into the given outputs."""
+    d = len(dims)
+    K = v_l.shape[1]
     n = K * d
-    g_A = np.zeros((B if need[0] else 0, n, n))
-    g_q = np.zeros((B if need[1] else 0, n))
-    g_mu = np.zeros((B if need[2] else 0, K))
-    g_lo = np.zeros((B if need[3] else 0, K))
-    for b in prange(B):
+    for b in range(start, stop):
         g = gamma[b]
         if need[0]:
             for i in range(n):
