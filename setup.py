@@ -1,17 +1,17 @@
-"""Build of the compiled interior-point kernel (everything else is in pyproject.toml)."""
+"""Build of the contact solver's compiled kernel (everything else is in pyproject.toml)."""
 
 import glob
 
 from setuptools import Extension, setup
 
-LANES = "src/diffcontact/solver/lanes/"
+CSRC = "src/diffcontact/solver/csrc/"
 
 setup(
     ext_modules=[
         Extension(
             "diffcontact.solver._lanes",
-            sources=[LANES + f for f in ("lanes_module.cpp", "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")],
-            depends=sorted(glob.glob(LANES + "*.hpp")),
+            sources=[CSRC + f for f in ("lanes_module.cpp", "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")],
+            depends=sorted(glob.glob(CSRC + "*.hpp")),
             # IEEE arithmetic except errno, traps and fused multiply-adds: the kernel tests for NaN and inf itself
             extra_compile_args=["-O3", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=fast", "-fno-exceptions"]
             + ["-Wall"],

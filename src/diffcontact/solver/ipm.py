@@ -12,7 +12,7 @@ reduced Newton matrix H = P + GᵀW⁻²G is P plus a d×d block per contact; it
 singular, and one Cholesky factor serves both directions of an iteration.  The iterations run in a compiled
 kernel (``lanes.py``) that solves several problems at once in the lanes of SIMD vectors, up to the tolerance
 IPM_TOL; Newton steps on the exact optimality conditions then polish the solution to rounding accuracy (in the
-same kernel, ``lanes/exact_lanes.hpp``).  Where polishing does not reach rounding level (a degenerate solution),
+same kernel, ``csrc/exact_lanes.hpp``).  Where polishing does not reach rounding level (a degenerate solution),
 the method is run again to the full tolerance.
 """
 
@@ -25,7 +25,7 @@ import torch
 
 from diffcontact.solver import lanes
 
-# per-element status codes, the same in the compiled kernel (lanes/ipm_lanes.hpp)
+# per-element status codes, the same in the compiled kernel (csrc/ipm_lanes.hpp)
 CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
 
 IPM_TOL = 1e-5  # the interior-point method's target before polishing (measured fastest in 1e-8 … 1e-3)

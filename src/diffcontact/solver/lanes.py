@@ -1,4 +1,4 @@
-"""The solver's compiled kernel (``lanes/*.hpp``): W problems at a time in the lanes of SIMD vectors.
+"""The solver's compiled kernel (``csrc/*.hpp``): W problems at a time in the lanes of SIMD vectors.
 
 Two entry points: the interior-point method followed by polishing (``solve``), and the adjoint solve of the
 backward pass (``adjoint``).
