@@ -56,3 +56,25 @@ def test_lane_widths_agree(d, K, restore_width):
 def test_unknown_width_is_refused(restore_width):
     with pytest.raises(ValueError, match="lane width 16"):
         lanes.select_width(16)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_solution_does_not_depend_on_the_batch_around_it(d):
+    """Lanes are independent: an element's solution and gradient are the same bit for bit whether it is solved
+    alone, in a shuffled batch, or split among threads differently."""
+    from diffcontact.solver import solve_cone_qp
+
+    gen = torch.Generator().manual_seed(5 + d)
+    A, q, mu, lower = random_instance(gen, 37, 3, d)
+    f = solve_cone_qp(A, q, mu, lower)
+    perm = torch.randperm(37, generator=gen)
+    assert torch.equal(solve_cone_qp(A[perm], q[perm], mu[perm], lower[perm]), f[perm])
+    for b in (0, 17, 36):
+        assert torch.equal(solve_cone_qp(A[b : b + 1], q[b : b + 1], mu[b : b + 1], lower[b : b + 1])[0], f[b])
+    # gradients too
+    ins = [t.clone().requires_grad_() for t in (A, q, mu, lower)]
+    solve_cone_qp(*ins).pow(2).sum().backward()
+    one = [t[17:18].clone().requires_grad_() for t in (A, q, mu, lower)]
+    solve_cone_qp(*one).pow(2).sum().backward()
+    for a, b in zip(ins, one):
+        assert torch.equal(a.grad[17:18], b.grad)
