@@ -27,8 +27,9 @@ def _standard_form(K, d, B, seed):
 
 @pytest.fixture
 def restore_width():
+    width = lanes.current_width()
     yield
-    lanes.select_width()
+    lanes.select_width(width)
 
 
 @pytest.mark.parametrize("d,K", [(1, 4), (2, 3), (3, 5)])
@@ -54,8 +55,14 @@ def test_lane_widths_agree(d, K, restore_width):
 
 
 def test_unknown_width_is_refused(restore_width):
-    with pytest.raises(ValueError, match="lane width 16"):
+    with pytest.raises(ValueError, match="lane width 16: not a lane width"):
         lanes.select_width(16)
+
+
+def test_bad_environment_variable_is_named(monkeypatch, restore_width):
+    monkeypatch.setenv("DIFFCONTACT_LANES", "wide")
+    with pytest.raises(ValueError, match="DIFFCONTACT_LANES='wide'"):
+        lanes.select_width()
 
 
 @pytest.mark.parametrize("d", [2, 3])

@@ -40,13 +40,21 @@ def supported_widths() -> list[int]:
 
 
 def select_width(width: int | None = None) -> int:
-    """Use the kernel of this lane width (None: the widest this CPU runs, or ``DIFFCONTACT_LANES``); returns it."""
+    """Use the kernel of this lane width (None: ``DIFFCONTACT_LANES`` if set, else the widest this CPU runs);
+    returns it."""
+    source = f"lane width {width}"
     if width is None:
-        env = os.environ.get("DIFFCONTACT_LANES")
-        width = int(env) if env else supported_widths()[0]
+        env = os.environ.get("DIFFCONTACT_LANES", "")
+        source = f"DIFFCONTACT_LANES={env!r}"
+        width = int(env) if env.strip().isdigit() else (supported_widths()[0] if not env else -1)
     if width not in (8, 4, 2) or not _lib.diffcontact_ipm_select(width):
-        raise ValueError(f"lane width {width} is not available on this CPU: choose one of {supported_widths()}")
+        raise ValueError(f"{source}: not a lane width this CPU runs; choose one of {supported_widths()}")
     return width
+
+
+def current_width() -> int:
+    """The lane width in use."""
+    return _lib.diffcontact_ipm_width()
 
 
 select_width()
@@ -62,7 +70,7 @@ def parallel(run, count: int) -> None:
     every stage: OpenMP workers of a ``prange`` would spin after their loop and compete with it for the cores.
     """
     global _pool
-    width = _lib.diffcontact_ipm_width()
+    width = current_width()
     threads = min(numba.get_num_threads(), count // (2 * width))
     if threads <= 1:
         run(0, count)
