@@ -54,13 +54,11 @@ class ImplicitConeQP(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(A, q, mu, lower, sol: ScaledSolution):  # noqa: D102
+    def forward(ctx, A, q, mu, lower, sol: ScaledSolution):  # noqa: D102
+        # (the form with ctx: the one with setup_context binds the arguments by signature on every call, ≈ 20 µs)
+        ctx.sol = sol
+        ctx.dtypes = (A.dtype, q.dtype, mu.dtype, lower.dtype)
         return (sol.gamma[:, None] * sol.T * sol.z).to(A.dtype)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output):  # noqa: D102
-        ctx.sol = inputs[4]
-        ctx.dtypes = tuple(t.dtype for t in inputs[:4])
 
     @staticmethod
     @torch.autograd.function.once_differentiable
