@@ -60,6 +60,7 @@ def current_width() -> int:
 select_width()
 
 _pool: ThreadPoolExecutor | None = None
+_pool_size = 0
 
 
 def parallel(run, count: int) -> None:
@@ -69,14 +70,14 @@ def parallel(run, count: int) -> None:
     running code that releases the GIL (this kernel, numba functions compiled with ``nogil``).  One pool for
     every stage: OpenMP workers of a ``prange`` would spin after their loop and compete with it for the cores.
     """
-    global _pool
+    global _pool, _pool_size
     width = current_width()
     threads = min(numba.get_num_threads(), count // (2 * width))
     if threads <= 1:
         run(0, count)
         return
-    if _pool is None or _pool._max_workers < threads:
-        _pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="diffcontact-solver")
+    if _pool is None or _pool_size < threads:
+        _pool, _pool_size = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="diffcontact-solver"), threads
     groups = -(-count // width)
     bounds = [min(count, width * (groups * t // threads)) for t in range(threads + 1)]
     for f in [_pool.submit(run, bounds[t], bounds[t + 1]) for t in range(threads)]:
