@@ -58,7 +58,7 @@ def simulate_split(
     sim = simulator_for(task)
     state = task.sample(n, seed)
     xs, vs, cs = [state.x[:, None]], [state.v[:, None]], [torch.zeros(n, 1, dtype=torch.bool)]
-    fmt = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total_fmt} trajectories [{elapsed}<{remaining}]"
+    fmt = "{desc}: {percentage:3.0f}%|{bar}| {n}/{total_fmt} trajectories [{elapsed}<{remaining}]"
     with torch.no_grad(), tqdm(total=n, desc=label, bar_format=fmt, disable=not progress, leave=False) as bar:
         done = 1
         while done < frames:
@@ -69,7 +69,7 @@ def simulate_split(
             cs.append(c[:, 1:])
             state = State(x[:, -1], v[:, -1])
             done += k
-            bar.update(n * k / (frames - 1))
+            bar.update(n * (done - 1) // (frames - 1) - bar.n)  # (integers: a float sum overshoots total)
     return torch.cat(xs, 1), torch.cat(vs, 1), torch.cat(cs, 1)
 
 
