@@ -103,3 +103,28 @@ def _project(x, mu, lower, d):
     candidates.append(np.concatenate([[lower], min(r, mu * lower) * u]))
     best = min(candidates, key=lambda y: np.linalg.norm(y - x))
     return best
+
+
+def clarabel_min_norm(A: np.ndarray, q: np.ndarray, mu: np.ndarray, lower: np.ndarray, d: int, f_opt: np.ndarray):
+    """The minimum-norm minimiser of a problem with a singular PSD A, in two stages: every minimiser has the
+    range part of ``f_opt`` (a minimiser, from :func:`clarabel_solve`), so minimise ‖f‖ over the cones with that
+    range part fixed.  Returns f."""
+    import cvxpy as cp
+
+    n = A.shape[0]
+    K = n // d
+    evals, V = np.linalg.eigh(0.5 * (A + A.T))
+    VR = V[:, evals > 1e-9 * max(evals.max(), 1e-300)]
+    f = cp.Variable(n)
+    cons = [f[0::d] >= lower, VR.T @ f == VR.T @ f_opt]
+    if d > 1:
+        for i in range(K):
+            ft = f[i * d + 1 : (i + 1) * d]
+            cons.append(ft == 0 if mu[i] == 0 else cp.norm(ft) <= mu[i] * f[i * d])
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(f)), cons)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        prob.solve(solver="CLARABEL", tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11, max_iter=500)
+    if prob.status not in ("optimal", "optimal_inaccurate"):
+        raise AssertionError(f"Clarabel did not solve the minimum-norm stage: {prob.status}")
+    return np.asarray(f.value)

@@ -132,6 +132,18 @@ def train(
         typer.echo(f"{key:10s} learned/true: {shown}{more}   max |error| = {item['max_abs_error']:.4f}")
 
 
+@bench_app.command("near-psd")
+def bench_near_psd(
+    total: int = typer.Option(100_000, "--n", help="Number of problems."),
+    batch: int = typer.Option(1000, help="Problems per solver call."),
+    seed: int = typer.Option(0, help="Seed of the random instances."),
+) -> None:
+    """Stress test: singular PSD effective masses rounded to float32 (every size the tasks use); no failure allowed."""
+    from diffcontact.bench.near_psd import run_near_psd_benchmark
+
+    run_near_psd_benchmark(total=total, batch=batch, seed=seed)
+
+
 @bench_app.command("simulate")
 def bench_simulate(
     tasks: list[str] = typer.Option([], "--task", "-t", help="Tasks (default: the 8 benchmark tasks)."),

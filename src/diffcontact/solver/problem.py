@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from diffcontact.errors import ContactSolverError
-from diffcontact.solver import ipm, scaling
+from diffcontact.solver import flat, ipm, scaling
 from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.implicit import ImplicitConeQP, ScaledSolution
 
@@ -135,6 +135,37 @@ def solve_cone_qp(
     if on_failure not in ("raise", "count"):
         raise ValueError(f"on_failure must be 'raise' or 'count', got {on_failure!r}")
     A, q, mu, lower, active, d = check_problem(A, q, mu, lower, active)
+    out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
+    A, q, flats = flat.project_flat(A, q, mu, active, d, flat.psd_tol(out_dtype))
+    opts = (tol, acceptable_tol, max_iter, on_failure)
+    if flats is not None and flats.consistent.any():
+        # the minimum-norm minimiser (solver/flat.py): where the minimisers are not unique, one inside their set is
+        # solved for again, differentiably, as the unique minimiser of the problem with curvature on the flat
+        # directions centred on it, and moved from there to the least-norm one
+        with torch.no_grad():
+            sub = flats.idx[flats.consistent]
+            first, first_result = _solve_differentiable(
+                A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d, *opts
+            )
+            _, spread, inner = flat.minimum_norm(
+                first, flats.subset(flats.consistent), mu[sub], lower[sub], active[sub], d
+            )
+        nonunique = torch.zeros_like(flats.consistent)
+        nonunique[flats.consistent] = spread
+        A, q = flat.centre_on(A, q, flats, nonunique, inner[spread])
+        f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
+        result.status[sub] = torch.maximum(result.status[sub], first_result.status)
+        f = flat.minimum_norm(f, flats, mu, lower, active, d, sel=nonunique)[0]
+    else:
+        f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
+    f = f.to(out_dtype)
+    if return_info:
+        return f, SolverInfo(status=result.status, iterations=result.iterations, residual=result.residual)
+    return f
+
+
+def _solve_differentiable(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure):
+    """Solve (``_solve``), apply the failure policy, and return (f, result) with f differentiable."""
     B = q.shape[0]
     with torch.no_grad():
         sol, result = _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter)
@@ -149,10 +180,7 @@ def solve_cone_qp(
         )
     if not A.dtype.is_floating_point:
         A = A.to(torch.float64)
-    f = ImplicitConeQP.apply(A, q, mu, lower, sol)
-    if return_info:
-        return f, SolverInfo(status=result.status, iterations=result.iterations, residual=result.residual)
-    return f
+    return ImplicitConeQP.apply(A, q, mu, lower, sol), result
 
 
 def _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter) -> tuple[ScaledSolution, ipm.IPMResult]:

@@ -8,12 +8,16 @@ entirely (no update, no weight decay, no moment update) and counted.  Logged per
 
 from __future__ import annotations
 
+import logging
+
 import lightning.pytorch as pl
 import torch
 
 from diffcontact.models import build_model
-from diffcontact.solver import solve_cone_qp
+from diffcontact.solver import Status, solve_cone_qp
 from diffcontact.systems.registry import build_task
+
+log = logging.getLogger(__name__)
 
 
 class ContactLightningModule(pl.LightningModule):
@@ -37,6 +41,7 @@ class ContactLightningModule(pl.LightningModule):
         self.automatic_optimization = False
         self.task = build_task(task)
         self.solver_failures = 0
+        self.solver_failures_by_status: dict[str, int] = {}
         self.skipped_steps = 0
         net = build_model(
             self.task,
@@ -53,7 +58,17 @@ class ContactLightningModule(pl.LightningModule):
     def _counting_solver(self, A, q, mu, lower=None, active=None, **_):
         """The contact solver, continuing with zero impulses on failure and counting them."""
         f, info = solve_cone_qp(A, q, mu, lower, active, on_failure="count", return_info=True)
-        self.solver_failures += info.n_failed
+        if info.n_failed:
+            self.solver_failures += info.n_failed
+            for code in info.status[info.failed].tolist():
+                name = Status(code).name
+                self.solver_failures_by_status[name] = self.solver_failures_by_status.get(name, 0) + 1
+            log.warning(
+                "contact solver failed for %d of %d problems (status %s); their impulses are zero",
+                info.n_failed,
+                len(info.status),
+                sorted({Status(c).name for c in info.status[info.failed].tolist()}),
+            )
         return f
 
     def loss(self, batch) -> torch.Tensor:
@@ -104,9 +119,14 @@ class ContactLightningModule(pl.LightningModule):
         return torch.optim.AdamW(self.net.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        checkpoint["counters"] = {"skipped_steps": self.skipped_steps, "solver_failures": self.solver_failures}
+        checkpoint["counters"] = {
+            "skipped_steps": self.skipped_steps,
+            "solver_failures": self.solver_failures,
+            "solver_failures_by_status": dict(self.solver_failures_by_status),
+        }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         counters = checkpoint.get("counters", {})
         self.skipped_steps = counters.get("skipped_steps", 0)
         self.solver_failures = counters.get("solver_failures", 0)
+        self.solver_failures_by_status = dict(counters.get("solver_failures_by_status", {}))

@@ -1,0 +1,354 @@
+"""Flat directions of the contact QP: an A that is PSD up to rounding, and minimisers that are not unique.
+
+The effective inverse mass A = J M⁻¹ Jᵀ (with joints: J P M⁻¹ Jᵀ) is singular whenever an impulse at the contacts
+can be absorbed by the joints (a gyroscope's rim contact along the line to its pivot: A is 3×3 of rank 2); computed
+in float32 its zero eigenvalues come out as ±1e-7‖A‖.  Then the QP  min ½fᵀAf + qᵀf  over the friction cones
+either has a whole set of minimisers (segment or face along the null directions, all with the same velocity change
+A f), or, with the rounding, no bounded one at all.  This module states what the solver does there.
+
+Definitions (per batch element, on the rows in use: active contacts, without the tangential rows of μ = 0):
+
+- ``ref`` = the largest diagonal entry of A on those rows (λ_max(A) ≤ n·ref).
+- A direction is *flat* if it is an eigenvector of A with eigenvalue |λ| ≤ τ·ref, τ = ``psd_tol(dtype)`` =
+  max(1e-6, 100·eps(dtype)) for the input dtype.  A is *PSD up to rounding* if every eigenvalue is ≥ −τ·ref; an
+  eigenvalue below that makes A genuinely indefinite, an input error (``IndefiniteMatrixError``).
+- If q's component along the flat directions is rounding too (‖Π_N q‖ ≤ ``Q_TOL``·‖q‖: for physical data
+  q = J v with v obeying the joints, so q is in the range of A), the flat eigenvalues and q's flat part are set to
+  zero.  The minimisers then form a set f + (flat directions) ∩ cones, all with the same velocity change A·f and
+  objective, and the solver returns the one of **minimum norm** (so that the impulse, and the restitution bound
+  e·f_n built on it, are bounded and do not depend on the solver): exactly, in closed form, where there is one
+  flat direction (the gyroscope; a pendulum bob); by exact line steps along the flat directions where there are
+  several, which reduce the norm but can stop short of the least one where the cones cut the flat space
+  obliquely (measured: within 2 % in the tests, within 1e-6 for d = 1, 2) (``minimum_norm``).
+- Otherwise (q pushes along a flat direction: a contact velocity that the joints do not allow, such as drift of
+  the constraint velocities) only the negative flat eigenvalues are set to zero and the problem is solved as it
+  is: bounded if q pushes the impulse out of the cones along the flat directions, else reported ``UNBOUNDED``
+  (physically: an impulse of any size inside the friction cones that the joints absorb and that lowers the
+  energy without limit).
+
+Gradients are those of this map (A, q, μ, lower) → minimiser: the flat projector Π_N moves with A (first-order
+eigenvector perturbation), which carries the derivative of removing q's flat part; the eigenvalues set to zero carry
+none (rounding); the set of minimisers' least-norm end carries the derivative of the cone that bounds it.  Where the
+minimisers are not unique, the implicit gradient is taken at a minimiser inside their set, from the problem with
+curvature on the flat directions centred there (``centre_on``), which is well posed.
+
+Most problems have no flat direction; a cheap Cholesky test (``flat_elements``) finds the ones that do, and only
+those are decomposed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from numba import njit
+
+from diffcontact.errors import DiffContactError
+from diffcontact.solver import lanes
+
+Q_TOL = 1e-4  # relative size of q's flat component taken as rounding (a constraint-velocity drift of 1e-4)
+UNIQUE_TOL = (
+    1e-6  # a set of minimisers narrower than this (relative) is a point (at a tangent line, rounding alone opens ~1e-8)
+)
+SWEEPS = 20  # of exact line steps in the minimum-norm stage, with more than one flat direction
+
+
+class IndefiniteMatrixError(DiffContactError, ValueError):
+    """A has an eigenvalue below −τ·ref on the rows in use: not positive semidefinite, even up to rounding."""
+
+
+def psd_tol(dtype: torch.dtype) -> float:
+    """τ of the module docstring for an input of this dtype."""
+    return max(1e-6, 100.0 * torch.finfo(dtype).eps)
+
+
+def rows_in_use(mu: torch.Tensor, active: torch.Tensor, d: int) -> torch.Tensor:
+    """(B, K·d) bool: rows of active contacts, without the tangential rows of μ = 0 contacts."""
+    used = active.repeat_interleave(d, -1)
+    if d > 1:
+        tangential = torch.ones(d, dtype=torch.bool)
+        tangential[0] = False
+        used = used & ~((mu == 0).repeat_interleave(d, -1) & tangential.repeat(mu.shape[-1]))
+    return used
+
+
+def flat_elements(A: np.ndarray, used: np.ndarray, tol: float) -> np.ndarray:
+    """(B,) bool: elements whose A, on its rows in use, has an eigenvalue ≤ tol·ref (module docstring).
+
+    A: (B, n, n) float64 (symmetrised); used: (B, n) bool.  A Cholesky factorisation of A − tol·ref·I per
+    element (its rounding error, ~n·eps·ref, is far below tol·ref); run on the solver's threads.
+    """
+    B, n, _ = A.shape
+    out = np.zeros(B, dtype=np.bool_)
+    lanes.parallel(lambda start, stop: _flat_range(A, used, tol, out, start, stop), B)
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _flat_range(A, used, tol, out, start, stop):
+    n = A.shape[1]
+    L = np.empty((n, n))
+    rows = np.empty(n, dtype=np.int64)
+    for b in range(start, stop):
+        m = 0
+        ref = 0.0
+        for i in range(n):
+            if used[b, i]:
+                rows[m] = i
+                m += 1
+                ref = max(ref, A[b, i, i])
+        if m == 0:
+            continue
+        shift = tol * ref
+        flat = ref <= 0.0
+        for jj in range(m):
+            if flat:
+                break
+            j = rows[jj]
+            s = A[b, j, j] - shift
+            for k in range(jj):
+                s -= L[jj, k] * L[jj, k]
+            if not s > 0.0:
+                flat = True
+                break
+            s = math.sqrt(s)
+            L[jj, jj] = s
+            for ii in range(jj + 1, m):
+                t = A[b, rows[ii], j]
+                for k in range(jj):
+                    t -= L[ii, k] * L[jj, k]
+                L[ii, jj] = t / s
+        out[b] = flat
+
+
+def _analyse(A: torch.Tensor, q: torch.Tensor, used: torch.Tensor, tol: float):
+    """Eigen-analysis of the selected elements (float64, no autograd); see ``FlatProjection``."""
+    mask = used[:, :, None] & used[:, None, :]
+    diag = torch.where(used, A.diagonal(dim1=-2, dim2=-1), torch.zeros_like(q))
+    ref = diag.amax(-1).clamp_min(torch.finfo(A.dtype).tiny)
+    # rows not in use: decoupled, with an eigenvalue (ref) that is not flat
+    As = torch.where(mask, A, torch.zeros_like(A)) + torch.diag_embed((~used) * ref[:, None])
+    evals, V = torch.linalg.eigh(As)
+    indefinite = evals[:, 0] < -tol * ref
+    null = evals.abs() <= tol * ref[:, None]  # (B, n), per eigenvector
+    qs = q * used
+    VN = V * null[:, None, :] * used[:, :, None]  # (exactly 0 on rows not in use, where eigh leaves rounding)
+    qN = VN.mT @ qs[..., None]
+    consistent = qN[..., 0].norm(dim=-1) <= Q_TOL * qs.norm(dim=-1)
+    # q with a flat part beyond rounding: A is only made PSD (its negative flat eigenvalues set to 0), the
+    # problem is left as it is otherwise (bounded or unbounded along those directions)
+    null = null & (consistent[:, None] | (evals < 0))
+    VN = V * null[:, None, :] * used[:, :, None]
+    PiN = VN @ VN.mT
+    N = (VN * evals[:, None, :]) @ VN.mT  # the flat part of A, removed
+    return dict(evals=evals, V=V, null=null, PiN=PiN, N=N, ref=ref, consistent=consistent, indefinite=indefinite)
+
+
+class FlatProjection(torch.autograd.Function):
+    """(A, q) → (Ã, q̃, Π_N, consistent, ref) of the selected elements (module docstring): flat eigenvalues set to
+    zero and q's flat part removed where it is rounding (``consistent``); elsewhere only negative flat eigenvalues
+    set to zero.  Π_N: the projector onto the directions whose eigenvalue was set to zero.
+
+    A: (B, n, n) symmetric, q: (B, n), float64; used: (B, n) bool.  Rows not in use pass through unchanged.
+    """
+
+    @staticmethod
+    def forward(ctx, A, q, used, tol, batch_index):  # noqa: D102
+        a = _analyse(A, q, used, tol)
+        if a["indefinite"].any():
+            bad = batch_index[a["indefinite"]].tolist()
+            worst = (a["evals"][:, 0] / a["ref"])[a["indefinite"]].min().item()
+            raise IndefiniteMatrixError(
+                f"A is not positive semidefinite in batch elements {bad[:10]}: smallest eigenvalue "
+                f"{worst:.3g}·max(diag A), below the rounding tolerance −{tol:.1g} (A must be symmetric PSD)"
+            )
+        k = a["consistent"].to(A.dtype)[:, None]
+        PiN, mask = a["PiN"], used[:, :, None] & used[:, None, :]
+        At = A - torch.where(mask, a["N"], torch.zeros_like(A))
+        qt = q - k * (PiN @ (q * used)[..., None])[..., 0]
+        ctx.save_for_backward(q, used)
+        ctx.a = a
+        ctx.mark_non_differentiable(a["consistent"], a["ref"])
+        return At, qt, PiN, a["consistent"], a["ref"]
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gA, gq, gPi, *_):  # noqa: D102
+        q, used = ctx.saved_tensors
+        a = ctx.a
+        V, evals, null, PiN, N = a["V"], a["evals"], a["null"], a["PiN"], a["N"]
+        mask = used[:, :, None] & used[:, None, :]
+        k = a["consistent"].to(q.dtype)[:, None, None]
+        G = torch.where(mask, 0.5 * (gA + gA.mT), torch.zeros_like(gA))
+        g = gq * used
+        qs = q * used
+        # Ã = A − Π_N A Π_N + k·ε·Π_N,  q̃ = q − k Π_N q:  the terms with dA and dq at fixed Π_N …
+        grad_A = gA - torch.where(mask, PiN @ G @ PiN, torch.zeros_like(gA))
+        grad_q = gq - k[..., 0] * (PiN @ g[..., None])[..., 0]
+        # … and the terms of dΠ_N = Σ_{i flat, j not} (v_j v_jᵀ dA v_i v_iᵀ + transpose)/(λ_i − λ_j)
+        H = gPi - (G @ N + N @ G) - k * g[..., None] * qs[:, None, :]
+        X = V.mT @ (0.5 * (H + H.mT)) @ V
+        pair = null[:, :, None] & ~null[:, None, :]  # (i flat, j not)
+        F = torch.where(pair, 1.0 / (evals[:, :, None] - evals[:, None, :]).where(pair, torch.ones_like(X)), 0.0)
+        Z = F * X
+        Z = Z + Z.mT
+        grad_A = grad_A + torch.where(mask, V @ Z @ V.mT, torch.zeros_like(gA))
+        return grad_A, grad_q, None, None, None
+
+
+@dataclass
+class FlatSet:
+    """The elements with flat directions (``project_flat``): indices idx (m,), their flat projectors Π_N
+    (m, n, n), differentiable, and whether their q's flat part was rounding (m,) bool: those get the minimum-norm
+    stage."""
+
+    idx: torch.Tensor
+    PiN: torch.Tensor
+    consistent: torch.Tensor
+    ref: torch.Tensor  # (m,) max diag of A on the rows in use (a constant)
+
+    def subset(self, sel: torch.Tensor) -> FlatSet:
+        """The elements ``sel`` (m,) bool of this set, renumbered 0 … sel.sum() − 1."""
+        return FlatSet(torch.arange(int(sel.sum())), self.PiN[sel], self.consistent[sel], self.ref[sel])
+
+
+def project_flat(A, q, mu, active, d, tol):
+    """The problem data with flat directions resolved (module docstring).
+
+    A: (B, n, n), q: (B, n), mu, active: (B, K).  Returns (A, q, flat): unchanged tensors and flat = None where no
+    element has a flat direction; else float64 tensors (A symmetrised in the changed elements) and a ``FlatSet``.
+    Differentiable (``FlatProjection``).
+    """
+    used = rows_in_use(mu.detach(), active, d)
+    A64 = A.to(torch.float64)
+    q64 = q.to(torch.float64)
+    sym = 0.5 * (A64 + A64.mT)
+    found = flat_elements(np.ascontiguousarray(sym.detach().numpy()), used.numpy(), tol)
+    if not found.any():
+        return A, q, None
+    idx = torch.from_numpy(found).nonzero().flatten()
+    At, qt, PiN, consistent, ref = FlatProjection.apply(sym[idx], q64[idx], used[idx], tol, idx)
+    return A64.index_copy(0, idx, At), q64.index_copy(0, idx, qt), FlatSet(idx, PiN, consistent, ref)
+
+
+def centre_on(A, q, flat: FlatSet, sel, f_star):
+    """A + ε·Π_N and q − ε·Π_N f* for the elements ``sel`` of ``flat`` (ε = ref): the problem whose unique
+    minimiser is f*, a minimiser of (A, q) (the added term is zero, and least, only there).
+
+    Its implicit gradient is well posed where the original one is not (a whole set of minimisers): with f* inside
+    that set, the constraint that bounds it (zero multiplier) is inactive, so the derivative of the range part is
+    the one of the original problem; ``minimum_norm``, applied afterwards, moves to the least-norm end and carries
+    the derivative of that end.  f_star: (m', n) for the elements ``sel`` (m,) bool, in their order; a constant.
+    """
+    idx = flat.idx[sel]
+    eps = flat.ref[sel][:, None, None]
+    PiN = flat.PiN[sel]
+    A = A.index_add(0, idx, eps * PiN)
+    q = q.index_add(0, idx, -(eps * PiN @ f_star.detach()[..., None])[..., 0])
+    return A, q
+
+
+def minimum_norm(f, flat: FlatSet, mu, lower, active, d, sel=None):
+    """Move the minimisers f of the elements in ``flat`` whose q had no flat part to the minimiser of least norm.
+
+    Every minimiser has the range part Π_R f (Π_R = I − Π_N); the others are f + v, v in the flat space, inside the
+    cones.  Along one flat direction v these are the points f + t·v of an interval of t (``_line_interval``, closed
+    form per contact), and the least norm is at t = −f·v/‖v‖² clipped to it.  With one flat direction (the
+    gyroscope; a pendulum bob on the ground) that is the minimum-norm minimiser, exactly.  With several, the same
+    exact step is taken along the steepest direction −Π_N f and along the flat space's coordinate directions
+    (columns of Π_N), in up to ``SWEEPS`` sweeps: every iterate is a minimiser (A·f exact, inside the cones) of
+    smaller norm, but where the cones' boundary cuts the flat space obliquely the sweeps can stop short of the least
+    norm (docs/solver.md gives the measured gap).  Differentiable (torch operations).
+
+    Where every such line only touches the cones at f (a sliding contact: the flat direction is tangent to its
+    cone), the minimiser is unique after all.
+
+    f: (B, n) float64; mu, lower: (B, K); active: (B, K) bool; sel: (m,) bool, the elements of ``flat`` to treat
+    (default: the consistent ones).  Returns f with those rows replaced, the (m,) bool mask of the elements
+    whose minimisers are not unique (a line of width > UNIQUE_TOL·max(1, ‖f‖∞) in the cones), and for the treated
+    elements a minimiser inside their set of minimisers (one flat direction: halfway from the least-norm one to the
+    far end or by max(1, ‖f‖∞); several: the given f, an interior-point solution), without gradient.
+    """
+    n = f.shape[-1]
+    sel = flat.consistent if sel is None else sel
+    spread = torch.zeros(len(flat.idx), dtype=torch.bool)
+    if not sel.any():
+        return f, spread, f[:0]
+    idx = flat.idx[sel]
+    PiN = flat.PiN[sel]
+    x = f[idx]
+    args = (mu[idx], lower[idx], active[idx], d)
+    diag = torch.diagonal(PiN, dim1=-2, dim2=-1)
+    nullity = diag.sum(-1).round().long()
+    order = diag.argsort(-1, descending=True)
+    columns = [PiN.gather(-1, order[:, k, None, None].expand(-1, n, 1))[..., 0] for k in range(int(nullity.max()))]
+    if int(nullity.max()) == 1:
+        sweeps, candidates = 1, lambda x: columns
+    else:
+        sweeps, candidates = SWEEPS, lambda x: [-(PiN @ x[..., None])[..., 0], *columns]
+    width = torch.zeros(len(idx), dtype=f.dtype)
+    inner = x.detach().clone()
+    for _ in range(sweeps):
+        before = x.detach().norm(dim=-1)
+        for v in candidates(x):
+            norm = v.norm(dim=-1, keepdim=True)
+            v = v / norm.clamp_min(1e-12)
+            lo, hi = _line_interval(x, v, *args)
+            width = torch.maximum(width, torch.where(norm[:, 0] > 1e-12, (hi - lo).detach(), 0.0))
+            t = torch.minimum(torch.maximum(-(x * v).sum(-1), lo), hi)
+            if sweeps == 1:  # a point halfway into the set of minimisers from the least one (``centre_on``)
+                reach = 0.5 * torch.minimum(hi - lo, x.abs().amax(-1).clamp_min(1.0)).detach()
+                tc = torch.where(t <= lo, lo + reach, torch.where(t >= hi, hi - reach, t)).detach()
+                inner = x.detach() + torch.where(norm > 1e-12, tc[:, None], 0.0) * v.detach()
+            x = x + torch.where(norm > 1e-12, t[:, None], 0.0) * v
+        if (x.detach().norm(dim=-1) >= before * (1 - 1e-15)).all():
+            break
+    spread[sel] = width > UNIQUE_TOL * x.detach().abs().amax(-1).clamp_min(1.0)
+    if sweeps > 1:  # the starting minimiser (an interior-point solution: inside the set, away from its faces)
+        inner = f[idx].detach()
+    return f.index_copy(0, idx, x), spread, inner
+
+
+def _line_interval(f, v, mu, lower, active, d):
+    """The interval [lo, hi] of t with f + t·v in the cones (f in them): (m,) each, ±inf where unbounded.
+
+    Per contact: the ray f_n + t v_n ≥ lower, and (d > 1, μ > 0) the cone ‖f_t + t v_t‖ ≤ μ (f_n + t v_n), whose
+    boundary points are the roots of a t² + 2b t + c = 0 with a = μ²v_n² − ‖v_t‖², b = μ² f_n v_n − f_t·v_t,
+    c = μ² f_n² − ‖f_t‖² ≥ 0.  A line meets the convex cone in an interval around t = 0: between the roots if
+    a < 0 (v outside the cone), beyond the root on the side of the cone (v_n's sign) if a > 0.
+    """
+    m, n = f.shape
+    K = n // d
+    fk, vk = f.view(m, K, d), v.view(m, K, d)
+    inf = torch.full((m, K), torch.inf, dtype=f.dtype)
+    fn, vn = fk[..., 0], vk[..., 0]
+    tiny = 1e-12  # (|v_n| below: the bound is at t ~ rounding / 1e-12 or beyond; ignored)
+    bound = (lower - fn) / torch.where(vn.abs() > tiny, vn, torch.ones_like(vn))
+    lo = torch.where(active & (vn > tiny), bound, -inf)
+    hi = torch.where(active & (vn < -tiny), bound, inf)
+    if d > 1:
+        ft, vt = fk[..., 1:], vk[..., 1:]
+        a = mu**2 * vn**2 - (vt**2).sum(-1)
+        b = mu**2 * fn * vn - (ft * vt).sum(-1)
+        c = mu**2 * fn**2 - (ft**2).sum(-1)
+        c = c - c.detach().clamp_max(0.0)  # (≥ 0 but for rounding, which must not cut the derivative)
+        disc = b**2 - a * c
+        sq = torch.where(disc > 0, torch.where(disc > 0, disc, 1.0).sqrt(), 0.0)  # (no NaN in the derivative)
+        qq = -(b + torch.where(b >= 0, sq, -sq))  # roots qq/a and c/qq without cancellation
+        safe = lambda x: torch.where(x != 0, x, torch.ones_like(x))  # noqa: E731
+        r1 = torch.where(a != 0, qq / safe(a), torch.where(b != 0, -c / (2 * safe(b)), -inf))
+        r2 = torch.where(qq != 0, c / safe(qq), r1)
+        small, large = torch.minimum(r1, r2), torch.maximum(r1, r2)
+        cone = active & (mu > 0)
+        outside = a < -1e-12 * (mu**2 * vn**2 + (vt**2).sum(-1))  # v outside the cone: between the roots
+        inside = ~outside & (sq > 0)  # beyond the root on the cone's side
+        lo = torch.where(cone & outside, torch.maximum(lo, small), lo)
+        hi = torch.where(cone & outside, torch.minimum(hi, large), hi)
+        lo = torch.where(cone & inside & (vn > 0), torch.maximum(lo, large), lo)
+        hi = torch.where(cone & inside & (vn < 0), torch.minimum(hi, small), hi)
+    # x is inside up to rounding, so the interval holds t = 0: a bound on the wrong side by rounding is moved to 0
+    # in value, keeping its derivative (x is often at the interval's end: the minimum-norm point found before)
+    lo, hi = lo.amax(-1), hi.amin(-1)
+    return lo - lo.detach().clamp_min(0.0), hi - hi.detach().clamp_max(0.0)

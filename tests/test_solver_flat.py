@@ -1,0 +1,134 @@
+"""Effective-mass matrices that are PSD up to rounding, and minimisers that are not unique (solver/flat.py).
+
+Every contact dimension and size the 8 benchmark tasks use: d = 1 with up to 19 contacts (rope), d = 2 with up to
+5 (balls, pendulum, disks), d = 3 with 1 (gyroscope).  A is singular PSD, rounded to float32 and perturbed by
+±1e-7·‖A‖ in its null space; q lies in the range of A, as J v does for a velocity v that obeys the joints.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from solver_oracle import TOL_OBJ, clarabel_min_norm, clarabel_solve, kkt_residual
+
+from diffcontact.bench.near_psd import TASK_SIZES, near_psd_instance
+from diffcontact.solver import Status, solve_cone_qp
+from diffcontact.solver.flat import IndefiniteMatrixError
+
+# The gyroscope problem of the issue: a 3×3 A (float32 in training) with eigenvalues −6.7e-8, 0.1005, 0.1052;
+# minimisers form a segment along the null direction, the line from the rim contact to the pivot.
+GYRO_A = [
+    [0.0663641020655632, -0.04685269668698311, -0.010782204568386078],
+    [-0.04685269668698311, 0.03714560344815254, -0.012602319940924644],
+    [-0.010782204568386078, -0.012602319940924644, 0.10220163315534592],
+]
+GYRO_Q = [-1.815451979637146, 0.6259483098983765, 3.5535082817077637]
+GYRO_MU = [1.1851791143417358]
+
+NORM_GAP = 0.02  # several flat directions: the largest excess of the norm measured (d = 3; ≤ 1e-6 for d = 1, 2)
+TOL_F = 1e-6  # against the two-stage Clarabel reference (its own errors reach a few 1e-7 at 1e-10 tolerance)
+
+
+def _projected(A: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The problem as the solver states it (solver/flat.py), computed independently: eigenvalues of magnitude
+    ≤ 1e-6·max(diag A) set to 0 (the PSD projection, and a rounding-level positive eigenvalue counted as 0), and
+    q's component along them (rounding: q = F w) removed."""
+    evals, V = np.linalg.eigh(0.5 * (A + A.T))
+    flat = np.abs(evals) <= 1e-6 * np.diag(A).max()
+    VN = V[:, flat]
+    return (V * np.where(flat, 0.0, evals)) @ V.T, q - VN @ (VN.T @ q)
+
+
+@pytest.mark.parametrize("K,d", TASK_SIZES)
+def test_near_psd_problems_converge_to_the_minimum_norm_minimiser(K, d):
+    """float64: against Clarabel on the PSD projection (objective, KKT conditions, minimum-norm minimiser);
+    float32 in and out: the float64 solution rounded (the solver works in float64 either way)."""
+    gen = torch.Generator().manual_seed(10 * K + d)
+    B = 12
+    A, q, mu, lower, _, _ = near_psd_instance(gen, B, K, d)
+    f, info = solve_cone_qp(A.double(), q.double(), mu.double(), lower.double(), return_info=True)
+    f32, info32 = solve_cone_qp(A, q, mu, lower, return_info=True)
+    assert (info.status == Status.CONVERGED).all() and (info32.status == Status.CONVERGED).all()
+    assert f32.dtype == torch.float32
+    # (float32 counts eigenvalues up to 1.2e-5·ref as flat, float64 up to 1e-6: the two stated problems can differ
+    # by that much; the objective is compared below)
+    for b in range(B):
+        Ab, qb = _projected(A[b].double().numpy(), q[b].double().numpy())
+        mub, lb = (t[b].double().numpy() for t in (mu, lower))
+        f_ref, obj_ref = clarabel_solve(Ab, qb, mub, lb, d)
+        fb = f[b].numpy()
+        obj = 0.5 * fb @ Ab @ fb + qb @ fb
+        scale = max(1.0, np.abs(f_ref).max())
+        obj_scale = max(1.0, abs(obj_ref), np.abs(qb).max() * scale)
+        assert abs(obj - obj_ref) <= TOL_OBJ * obj_scale, (b, obj, obj_ref)
+        f32b = f32[b].double().numpy()
+        assert abs(0.5 * f32b @ Ab @ f32b + qb @ f32b - obj_ref) <= 1e-5 * obj_scale, b
+        assert kkt_residual(Ab, qb, mub, lb, fb, d) <= 1e-8, b
+        f_min = clarabel_min_norm(Ab, qb, mub, lb, d, f_ref)
+        # (Clarabel's own errors along a cone's boundary reach a few 1e-6: tests/test_solver_accuracy.py)
+        tol_f = TOL_F + 10 * max(kkt_residual(Ab, qb, mub, lb, f_ref, d), kkt_residual(Ab, qb, mub, lb, f_min, d))
+        # a minimiser (KKT above) whose norm is not above the least one is the minimum-norm minimiser (the norm is
+        # strictly convex); compared by norm, as Clarabel's two-stage point is inaccurate along a flat direction
+        # tangent to a cone (a sliding contact, where the minimiser is unique: error ~ sqrt of its residual)
+        one_flat = np.linalg.matrix_rank(Ab, tol=1e-9 * np.abs(Ab).max()) == K * d - 1
+        gap = tol_f if one_flat else NORM_GAP  # several flat directions: reduced, not always least (flat.py)
+        slack = np.sqrt(kkt_residual(Ab, qb, mub, lb, f_min, d))  # (its displacement along a tangent line)
+        assert np.linalg.norm(fb) <= np.linalg.norm(f_min) * (1 + gap + slack) + tol_f, (b, fb, f_min)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gyroscope_problem_of_the_issue(dtype):
+    A, q, mu = (torch.tensor(x, dtype=torch.float64) for x in (GYRO_A, GYRO_Q, GYRO_MU))
+    f, info = solve_cone_qp(A[None].to(dtype), q[None].to(dtype), mu[None].to(dtype), return_info=True)
+    assert info.status.item() == Status.CONVERGED
+    Ap, qp = _projected(A.numpy(), q.numpy())
+    zero = np.zeros(1)
+    f_ref, obj_ref = clarabel_solve(Ap, qp, mu.numpy(), zero, 3)
+    f_min = clarabel_min_norm(Ap, qp, mu.numpy(), zero, 3, f_ref)
+    fb = f[0].double().numpy()
+    assert abs(0.5 * fb @ Ap @ fb + qp @ fb - obj_ref) <= TOL_OBJ * abs(obj_ref)
+    rel = 1e-6 if dtype == torch.float64 else 1e-6 + 4 * torch.finfo(dtype).eps
+    assert np.abs(fb - f_min).max() <= rel * np.abs(f_min).max(), (fb, f_min)
+    # the velocity change is the one of every minimiser; the impulse is the smallest (Clarabel's own, any point of
+    # the segment, was (176, 208, 9.5) in the issue)
+    assert np.abs(Ap @ (fb - f_ref)).max() <= 1e-6 * np.abs(q.numpy()).max()
+    assert np.linalg.norm(fb) <= np.linalg.norm(f_ref) * (1 + 1e-9)
+
+
+@pytest.mark.parametrize(
+    "K,d,mu_scale,seed", [(1, 3, 3.0, 0), (1, 3, 0.5, 1), (2, 2, 1.0, 2), (2, 2, 2.0, 5), (3, 1, 1.0, 3)]
+)
+def test_gradcheck_through_a_singular_effective_mass(K, d, mu_scale, seed):
+    """A = F Fᵀ + rounding and q = F w, as A = J M⁻¹ Jᵀ and q = J v are formed: the finite differences move the
+    null space of A and q with it (perturbing A alone would leave q with a component the joints do not allow)."""
+    gen = torch.Generator().manual_seed(seed)
+    B = 4
+    A32, _, mu, lower, F, w = near_psd_instance(gen, B, K, d, mu_scale)
+    E = A32.double() - F @ F.mT  # the rounding, held fixed
+
+    def fn(F, w, mu, lower):
+        return solve_cone_qp(F @ F.mT + E, (F @ w[..., None])[..., 0], mu, lower)
+
+    lower = lower + 0.05  # (> 0: the finite differences stay feasible)
+    inputs = tuple(t.double().clone().requires_grad_() for t in (F, w, mu, lower))
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_truly_unbounded_is_reported_as_unbounded():
+    """A flat direction inside the cone (here the normal) that q pushes along: no minimiser."""
+    A = torch.diag(torch.tensor([0.0, 1.0, 1.0], dtype=torch.float64)).expand(3, 3, 3).clone()
+    q = torch.tensor([[-1.0, 0.2, 0.0], [1.0, 0.2, 0.0], [-1e-9, 0.2, 0.0]], dtype=torch.float64)
+    f, info = solve_cone_qp(A, q, torch.full((3, 1), 0.5, dtype=torch.float64), on_failure="count", return_info=True)
+    assert info.status.tolist() == [Status.UNBOUNDED, Status.CONVERGED, Status.CONVERGED]
+    # bounded: q pushes out of the cone along the flat direction (friction would save less than the push costs)
+    assert torch.allclose(f[1], torch.zeros(3, dtype=torch.float64), atol=1e-9)
+    # a push at rounding level: the minimum-norm minimiser, just enough normal impulse to stop the sliding
+    assert torch.allclose(f[2], torch.tensor([0.4, -0.2, 0.0], dtype=torch.float64), atol=1e-9)
+
+
+def test_genuinely_indefinite_matrix_is_an_input_error():
+    A = torch.eye(2, dtype=torch.float64).repeat(3, 1, 1)
+    A[1, 1, 1] = -1e-3
+    with pytest.raises(IndefiniteMatrixError, match=r"not positive semidefinite in batch elements \[1\]"):
+        solve_cone_qp(A, torch.zeros(3, 2, dtype=torch.float64), torch.ones(3, 1, dtype=torch.float64))
