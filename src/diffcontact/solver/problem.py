@@ -156,6 +156,7 @@ def solve_cone_qp(
         f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
         result.status[sub] = torch.maximum(result.status[sub], first_result.status)
         f = flat.minimum_norm(f, flats, mu, lower, active, d, sel=nonunique)[0]
+        f = torch.where((result.status >= Status.MAX_ITER)[:, None], torch.zeros_like(f), f)
     else:
         f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
     f = f.to(out_dtype)

@@ -1,0 +1,91 @@
+"""How often training meets flat directions (solver/flat.py), and how large q's flat part is there.
+
+python benchmarks/flat_stats.py RUN_DIR [--data data]: replays one epoch of the run's training batches through
+the model of its best checkpoint (and through the initial model of the same seed), and prints per phase the number
+of contact problems, those with flat directions, how many had q's flat part at rounding level (minimum-norm
+minimiser) and how many of those had more than one minimiser, the largest relative flat part of q among them, and
+the solver statuses, and how many flat problems have q's flat part ‖Π_N q‖/‖q‖ below 1e-6 … 1e-1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from diffcontact.solver import Status, flat
+from diffcontact.train.datamodule import ContactDataModule
+from diffcontact.train.module import ContactLightningModule
+
+
+def replay(module: ContactLightningModule, data: ContactDataModule) -> dict:
+    stats = {"problems": 0, "flat": 0, "consistent": 0, "ratio_max_consistent": 0.0, "ratio_min_other": None}
+    ratios = []
+    statuses = {s.name: 0 for s in Status}
+    analyse = flat._analyse
+
+    def recording(A, q, used, tol):
+        out = analyse(A, q, used, tol)
+        qs = q * used
+        VN = out["V"] * (out["evals"].abs() <= tol * out["ref"][:, None])[:, None, :] * used[:, :, None]
+        ratio = (VN.mT @ qs[..., None])[..., 0].norm(dim=-1) / qs.norm(dim=-1).clamp_min(1e-300)
+        c = out["consistent"]
+        ratios.append(ratio)
+        stats["flat"] += len(c)
+        stats["consistent"] += int(c.sum())
+        if c.any():
+            stats["ratio_max_consistent"] = max(stats["ratio_max_consistent"], float(ratio[c].max()))
+        if (~c).any():
+            low = float(ratio[~c].min())
+            stats["ratio_min_other"] = low if stats["ratio_min_other"] is None else min(stats["ratio_min_other"], low)
+        return out
+
+    contact = module.net.simulator.contact_model
+    solve = contact.solver
+    assign = object.__setattr__  # (the contact model is a frozen dataclass)
+
+    def counting(A, q, mu, lower=None, active=None, **kw):
+        from diffcontact.solver import solve_cone_qp
+
+        f, info = solve_cone_qp(A, q, mu, lower, active, on_failure="count", return_info=True)
+        stats["problems"] += len(info.status)
+        for code in info.status.tolist():
+            statuses[Status(code).name] += 1
+        return f
+
+    flat._analyse = recording
+    assign(contact, "solver", counting)
+    try:
+        with torch.no_grad():
+            for batch in data.train_dataloader():
+                module.loss(batch)
+    finally:
+        flat._analyse = analyse
+        assign(contact, "solver", solve)
+    stats["status"] = statuses
+    if ratios:
+        r = torch.cat(ratios)
+        stats["flat_part_of_q"] = {f"<= {t:g}": int((r <= t).sum()) for t in (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1)}
+        stats["flat_part_of_q_max"] = float(r.max())
+    return stats
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--data", default="data")
+    args = parser.parse_args()
+    config = json.loads((args.run / "config.json").read_text())
+    learned = json.loads((args.run / "learned.json").read_text())
+    hp = config["args"]
+    data = ContactDataModule(hp["task"], args.data, seed=hp["seed"])
+    best = ContactLightningModule.load_from_checkpoint(learned["best_checkpoint"], map_location="cpu")
+    initial = ContactLightningModule(**{k: v for k, v in best.hparams.items()})
+    for name, module in (("initial model", initial), ("best checkpoint", best)):
+        print(name, json.dumps(replay(module, data)))
+
+
+if __name__ == "__main__":
+    main()
