@@ -13,8 +13,8 @@ import torch
 from solver_oracle import TOL_OBJ, clarabel_min_norm, clarabel_solve, kkt_residual
 
 from diffcontact.bench.near_psd import TASK_SIZES, near_psd_instance
+from diffcontact.errors import IndefiniteMatrixError
 from diffcontact.solver import Status, solve_cone_qp
-from diffcontact.solver.flat import IndefiniteMatrixError
 
 # The gyroscope problem of the issue: a 3×3 A (float32 in training) with eigenvalues −6.7e-8, 0.1005, 0.1052;
 # minimisers form a segment along the null direction, the line from the rim contact to the pivot.

@@ -8,7 +8,8 @@ import pytest
 
 from diffcontact.data.generate import generate_dataset
 from diffcontact.errors import ConfigError
-from diffcontact.train.run import train_run
+from diffcontact.train.module import ContactLightningModule
+from diffcontact.train.run import learned_summary, resolve_preset, train_run
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +36,8 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     assert learned["mu"]["true"][0] == pytest.approx(0.2) and learned["e"]["true"][0] == pytest.approx(0.8)
     config = json.loads((run / "config.json").read_text())
     assert config["args"]["task"] == "BP1" and "torch" in config["versions"]
+    assert config["args"]["preset"] == "default" and config["args"]["lr"] == 1e-2  # (epochs given explicitly)
+    assert config["args"]["epochs"] == 2
 
 
 def test_resume_continues_to_more_epochs(data_root, tmp_path):
@@ -51,3 +54,20 @@ def test_bad_arguments_are_clear_errors(data_root, tmp_path):
         train_run("BP1", epochs=0, out=tmp_path, data_root=data_root)
     with pytest.raises(ConfigError, match="no checkpoint to resume from"):
         train_run("BP1", epochs=1, out=tmp_path / "fresh", data_root=data_root, resume=True)
+    with pytest.raises(ConfigError, match="preset = 'fast' is not one of"):
+        train_run("BP1", preset="fast", out=tmp_path, data_root=data_root)
+
+
+def test_presets_give_the_optimiser_settings_and_explicit_values_win():
+    assert resolve_preset("default", None, None) == (200, 1e-2)
+    assert resolve_preset("published", None, None) == (1000, 1e-3)
+    assert resolve_preset("published", 5, None) == (5, 1e-3)
+    assert resolve_preset("default", None, 3e-3) == (200, 3e-3)
+
+
+def test_learned_json_reports_the_moments_of_extended_bodies():
+    module = ContactLightningModule("BD1")  # one disk: second moments per unit mass r²/4 per axis
+    summary = learned_summary(module)
+    truth = module.task.params.inertia.moments.flatten().tolist()
+    assert summary["moments"]["true"] == truth and len(summary["moments"]["learned"]) == len(truth)
+    assert "moments" not in learned_summary(ContactLightningModule("BP1"))  # point masses

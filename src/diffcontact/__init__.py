@@ -2,7 +2,7 @@
 
 from diffcontact.config import available_tasks, load_task
 from diffcontact.contact.impulse import ContactModel
-from diffcontact.errors import ConfigError, ContactSolverError, DatasetError
+from diffcontact.errors import ConfigError, ContactSolverError, DatasetError, IndefiniteMatrixError
 from diffcontact.simulator import Simulator, simulator_for
 from diffcontact.solver import SolverInfo, Status, solve_cone_qp
 from diffcontact.state import Inertia, Params, State
@@ -15,6 +15,7 @@ __all__ = [
     "ConfigError",
     "ContactModel",
     "ContactSolverError",
+    "IndefiniteMatrixError",
     "DatasetError",
     "Inertia",
     "Params",

@@ -98,12 +98,15 @@ def generate(
 def train(
     task: str = typer.Argument(..., help="Task name (its dataset must exist: diffcontact generate TASK)."),
     model: str = typer.Option("CM-CD-CLNN", "--model", help="CM-CD-CLNN, CM-CD-CHNN, CMr-CD-CLNN or CMr-CD-CHNN."),
-    epochs: int = typer.Option(1000, "--epochs", help="Epochs (published: about 1000)."),
+    preset: str = typer.Option(
+        "default", "--preset", help="Optimiser settings: default (200 epochs, lr 1e-2) or published (1000, 1e-3)."
+    ),
+    epochs: int = typer.Option(None, "--epochs", help="Epochs (default: the preset's)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the initial parameters and the batch order."),
     out: str = typer.Option("", "--out", help="Run directory (default runs/TASK/MODEL/seedS)."),
     data: str = typer.Option("data", "--data", help="Dataset root (as given to diffcontact generate --out)."),
     batch_size: int = typer.Option(200, "--batch-size", help="Chunks per batch."),
-    lr: float = typer.Option(1e-3, "--lr", help="AdamW learning rate."),
+    lr: float = typer.Option(None, "--lr", help="AdamW learning rate (default: the preset's)."),
     smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of ReLU / hardsigmoid."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the run's last checkpoint."),
     progress: bool = typer.Option(True, help="Show a progress bar."),
@@ -114,15 +117,17 @@ def train(
 
     try:
         summary = train_run(
-            task, model, epochs=epochs, seed=seed, out=out or None, data_root=data, batch_size=batch_size, lr=lr,
-            mu_transform="softplus" if smooth else "relu", e_transform="sigmoid" if smooth else "hardsigmoid",
+            task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
+            batch_size=batch_size, lr=lr, mu_transform="softplus" if smooth else "relu", e_transform="sigmoid" if smooth else "hardsigmoid",
             resume=resume, progress=progress,
         )  # fmt: skip
     except (ConfigError, DatasetError) as err:
         typer.echo(f"{type(err).__name__}: {err}", err=True)
         raise typer.Exit(2) from err
     typer.echo(f"run: {summary['run_dir']}  ({summary['wall_time_s']:.0f} s, best epoch: {summary['best_checkpoint']})")
-    for key in ("mu", "e", "mass_ratio"):
+    for key in ("mu", "e", "mass_ratio", "moments"):
+        if key not in summary:
+            continue
         item = summary[key]
         learned, true = item["learned"], item["true"]
         if len(set(true)) == 1 and len(set(learned)) == 1:  # homogeneous: one value for every slot

@@ -25,5 +25,10 @@ class ContactSolverError(DiffContactError, RuntimeError):
         self.failed = failed or []
 
 
+class IndefiniteMatrixError(DiffContactError, ValueError):
+    """The contact solver's A has an eigenvalue below −τ·max diag(A): not positive semidefinite, even up to
+    rounding (``diffcontact.solver.flat``).  The message names the batch elements."""
+
+
 class DatasetError(DiffContactError, RuntimeError):
     """A dataset file is missing, corrupt, or does not match its metadata or config."""

@@ -48,7 +48,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from diffcontact.errors import DiffContactError
+from diffcontact.errors import IndefiniteMatrixError
 from diffcontact.solver import lanes
 
 Q_TOL = 0.1  # q's flat part up to this (relative) is drift of the constraint velocities, dropped (docstring)
@@ -56,10 +56,6 @@ Q_TOL = 0.1  # q's flat part up to this (relative) is drift of the constraint ve
 # opens a gap of ~1e-8)
 UNIQUE_TOL = 1e-6
 SWEEPS = 20  # of exact line steps in the minimum-norm stage, with more than one flat direction
-
-
-class IndefiniteMatrixError(DiffContactError, ValueError):
-    """A has an eigenvalue below −τ·ref on the rows in use: not positive semidefinite, even up to rounding."""
 
 
 def psd_tol(dtype: torch.dtype) -> float:

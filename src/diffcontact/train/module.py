@@ -98,10 +98,9 @@ class ContactLightningModule(pl.LightningModule):
 
     def on_train_epoch_end(self) -> None:
         p = self.net.params
+        self.log_dict({"learned/mu_mean": p.mu.detach().mean(), "learned/e_mean": p.e.detach().mean()}, prog_bar=True)
         self.log_dict(
             {
-                "learned/mu_mean": p.mu.detach().mean(),
-                "learned/e_mean": p.e.detach().mean(),
                 "train/skipped_steps": float(self.skipped_steps),
                 "train/solver_failures": float(self.solver_failures),
             }
