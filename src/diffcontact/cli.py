@@ -118,8 +118,8 @@ def train(
     try:
         summary = train_run(
             task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
-            batch_size=batch_size, lr=lr, mu_transform="softplus" if smooth else "relu", e_transform="sigmoid" if smooth else "hardsigmoid",
-            resume=resume, progress=progress,
+            batch_size=batch_size, lr=lr, mu_transform="softplus" if smooth else "relu",
+            e_transform="sigmoid" if smooth else "hardsigmoid", resume=resume, progress=progress,
         )  # fmt: skip
     except (ConfigError, DatasetError) as err:
         typer.echo(f"{type(err).__name__}: {err}", err=True)
