@@ -55,7 +55,7 @@ def run_near_psd_benchmark(total: int = 100_000, batch: int = 1000, seed: int = 
                 if B <= 0:
                     break
                 A, q, mu, lower, _, _ = near_psd_instance(gen, B, K, d)
-                ins = [t.to(dtype).requires_grad_() for t in (A, q, mu, lower)]
+                ins = [t.to(dtype).clone().requires_grad_() for t in (A, q, mu, lower)]
                 f, info = solve_cone_qp(*ins, on_failure="count", return_info=True)
                 f.sum().backward()
                 if not all(torch.isfinite(t.grad).all() for t in ins) or not torch.isfinite(f).all():

@@ -270,44 +270,61 @@ def minimum_norm(f, flat: FlatSet, mu, lower, active, d, sel=None):
     elements a minimiser inside their set of minimisers (one flat direction: halfway from the least-norm one to the
     far end or by max(1, ‖f‖∞); several: the given f, an interior-point solution), without gradient.
     """
-    n = f.shape[-1]
     sel = flat.consistent if sel is None else sel
     spread = torch.zeros(len(flat.idx), dtype=torch.bool)
-    if not sel.any():
-        return f, spread, f[:0]
-    idx = flat.idx[sel]
-    PiN = flat.PiN[sel]
-    x = f[idx]
-    args = (mu[idx], lower[idx], active[idx], d)
+    inner = torch.zeros(len(flat.idx), f.shape[-1], dtype=f.dtype)
+    nullity = torch.diagonal(flat.PiN, dim1=-2, dim2=-1).sum(-1).round().long()
+    for group in (sel & (nullity == 1), sel & (nullity > 1)):  # (each element's treatment is its own)
+        if group.any():
+            idx = flat.idx[group]
+            x, spread[group], inner[group] = _least_norm(f[idx], flat.PiN[group], mu[idx], lower[idx], active[idx], d)
+            f = f.index_copy(0, idx, x)
+    return f, spread, inner[sel]
+
+
+def _least_norm(x, PiN, mu, lower, active, d):
+    """``minimum_norm`` for elements of one kind (all with one flat direction, or all with several):
+    returns (x moved, spread (m,), inner (m, n))."""
+    n = x.shape[-1]
+    start = x.detach()
     diag = torch.diagonal(PiN, dim1=-2, dim2=-1)
     nullity = diag.sum(-1).round().long()
-    order = diag.argsort(-1, descending=True)
-    columns = [PiN.gather(-1, order[:, k, None, None].expand(-1, n, 1))[..., 0] for k in range(int(nullity.max()))]
-    if int(nullity.max()) == 1:
-        sweeps, candidates = 1, lambda x: columns
-    else:
-        sweeps, candidates = SWEEPS, lambda x: [-(PiN @ x[..., None])[..., 0], *columns]
-    width = torch.zeros(len(idx), dtype=f.dtype)
-    inner = x.detach().clone()
+    ranked, order = diag.sort(-1, descending=True)
+    # the columns of Π_N with the largest diagonals, one per flat direction of the element (a column whose diagonal
+    # is small is a direction known only to rounding: left out)
+    columns = [
+        PiN.gather(-1, order[:, k, None, None].expand(-1, n, 1))[..., 0]
+        * ((k < nullity) & (ranked[:, k] > 1e-6))[:, None]
+        for k in range(int(nullity.max()))
+    ]
+    one = int(nullity.max()) == 1
+    sweeps = 1 if one else SWEEPS
+    width = torch.zeros(len(x), dtype=x.dtype)
+    inner = start
+    live = torch.ones(len(x), dtype=torch.bool)  # (each element sweeps until its own norm stops falling)
+    scale = start.abs().amax(-1).clamp_min(1.0)
     for _ in range(sweeps):
         before = x.detach().norm(dim=-1)
-        for v in candidates(x):
+        for v in columns if one else [-(PiN @ x[..., None])[..., 0], *columns]:
             norm = v.norm(dim=-1, keepdim=True)
             v = v / norm.clamp_min(1e-12)
-            lo, hi = _line_interval(x, v, *args)
-            width = torch.maximum(width, torch.where(norm[:, 0] > 1e-12, (hi - lo).detach(), 0.0))
+            lo, hi = _line_interval(x, v, mu, lower, active, d)
+            along = (norm[:, 0] > 1e-12) & live
+            width = torch.maximum(width, torch.where(along, (hi - lo).detach(), 0.0))
+            # a line that only touches the cones (tangent: its ends known to the square root of rounding) is no step
+            along = along & ((hi - lo).detach() > UNIQUE_TOL * scale)
             t = torch.minimum(torch.maximum(-(x * v).sum(-1), lo), hi)
-            if sweeps == 1:  # a point halfway into the set of minimisers from the least one (``centre_on``)
-                reach = 0.5 * torch.minimum(hi - lo, x.abs().amax(-1).clamp_min(1.0)).detach()
+            if one:  # a point halfway into the set of minimisers from the least one (``centre_on``)
+                reach = 0.5 * torch.minimum(hi - lo, scale).detach()
                 tc = torch.where(t <= lo, lo + reach, torch.where(t >= hi, hi - reach, t)).detach()
-                inner = x.detach() + torch.where(norm > 1e-12, tc[:, None], 0.0) * v.detach()
-            x = x + torch.where(norm > 1e-12, t[:, None], 0.0) * v
-        if (x.detach().norm(dim=-1) >= before * (1 - 1e-15)).all():
+                inner = x.detach() + torch.where(along, tc, 0.0)[:, None] * v.detach()
+            x = x + torch.where(along, t, 0.0)[:, None] * v
+        live = live & (x.detach().norm(dim=-1) < before * (1 - 1e-15))
+        if not live.any():
             break
-    spread[sel] = width > UNIQUE_TOL * x.detach().abs().amax(-1).clamp_min(1.0)
-    if sweeps > 1:  # the starting minimiser (an interior-point solution: inside the set, away from its faces)
-        inner = f[idx].detach()
-    return f.index_copy(0, idx, x), spread, inner
+    # (several flat directions: the start, an interior-point solution, lies inside the set, away from its faces)
+    spread = width > UNIQUE_TOL * scale
+    return x, spread, inner
 
 
 def _line_interval(f, v, mu, lower, active, d):
