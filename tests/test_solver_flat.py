@@ -150,3 +150,42 @@ def test_gyroscope_with_a_wide_friction_cone_simulates_without_failure():
     params = dataclasses.replace(task.params, mu=torch.full_like(task.params.mu, 1.2))
     xs, vs, contact = simulator_for(task).rollout(task.sample(32, seed=0), params, task.dt, 100)
     assert contact.any() and torch.isfinite(xs).all() and torch.isfinite(vs).all()
+
+
+@pytest.mark.parametrize("K,d", [(19, 1), (2, 3), (5, 2)])
+def test_an_elements_solution_and_gradient_do_not_depend_on_its_batch(K, d):
+    """The flat stage treats every element on its own (its flat directions, its line steps)."""
+    gen = torch.Generator().manual_seed(3 + K)
+    A, q, mu, lower, _, _ = near_psd_instance(gen, 40, K, d)
+
+    def solve(sl):
+        ins = [t[sl].double().clone().requires_grad_() for t in (A, q, mu, lower)]
+        f = solve_cone_qp(*ins)
+        (f * torch.linspace(0.5, 1.5, f.shape[-1], dtype=torch.float64)).sum().backward()
+        return f.detach(), [t.grad for t in ins]
+
+    f_all, g_all = solve(slice(None))
+    for b in (0, 7, 39):
+        f_one, g_one = solve(slice(b, b + 1))
+        assert torch.allclose(f_one[0], f_all[b], rtol=1e-9, atol=1e-12)
+        for one, full in zip(g_one, g_all):
+            assert torch.allclose(one[0], full[b], rtol=1e-7, atol=1e-9)
+
+
+def test_stress_benchmark_element_whose_gradient_was_not_finite_in_its_batch():
+    """Element 305 of the stress benchmark's (K = 19, d = 1, float32) batch (seed 0): six flat directions; its
+    gradient with respect to the lower bounds was NaN / 1e31 in the batch of 1000 (the line steps ran as long as any
+    element improved), finite alone."""
+    gen = torch.Generator().manual_seed(0)
+    for K, d in TASK_SIZES:  # (the benchmark's sequence of instances up to that batch)
+        for dtype in (torch.float32, torch.float64):
+            A, q, mu, lower, _, _ = near_psd_instance(gen, 1000, K, d)
+            if (K, d, dtype) == (19, 1, torch.float32):
+                ins = [t.clone().requires_grad_() for t in (A, q, mu, lower)]
+                solve_cone_qp(*ins).sum().backward()
+                assert all(torch.isfinite(t.grad).all() for t in ins)
+                alone = [t[305:306].clone().requires_grad_() for t in (A, q, mu, lower)]
+                solve_cone_qp(*alone).sum().backward()
+                for one, full in zip(alone, ins):
+                    assert torch.allclose(one.grad[0], full.grad[305], rtol=1e-4, atol=1e-5)
+                return
