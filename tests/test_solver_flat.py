@@ -189,3 +189,25 @@ def test_stress_benchmark_element_whose_gradient_was_not_finite_in_its_batch():
                 for one, full in zip(alone, ins):
                     assert torch.allclose(one.grad[0], full.grad[305], rtol=1e-4, atol=1e-5)
                 return
+
+
+def test_gradcheck_of_the_flat_projection_alone():
+    """(A, q) → (Ã, q̃, Π_N) through A = F Fᵀ + E (E: fixed eigenvalues ±2e-8 on the null space) and q = F w + 1e-9:
+    the first-order eigenvector perturbation of the backward pass against finite differences."""
+    from diffcontact.solver.flat import FlatProjection
+
+    gen = torch.Generator().manual_seed(0)
+    B, n, r = 3, 4, 2
+    F = torch.randn(B, n, r, generator=gen, dtype=torch.float64)
+    w = torch.randn(B, r, generator=gen, dtype=torch.float64)
+    _, V = torch.linalg.eigh(F @ F.mT)
+    E = 3e-8 * V[..., :1] @ V[..., :1].mT - 2e-8 * V[..., 1:2] @ V[..., 1:2].mT
+    used = torch.ones(B, n, dtype=torch.bool)
+
+    def fn(F, w):
+        A = F @ F.mT + E
+        out = FlatProjection.apply(0.5 * (A + A.mT), (F @ w[..., None])[..., 0] + 1e-9, used, 1e-6, torch.arange(B))
+        return out[:3]
+
+    inputs = (F.clone().requires_grad_(), w.clone().requires_grad_())
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-7, atol=1e-6, rtol=1e-5)

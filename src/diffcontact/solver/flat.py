@@ -136,7 +136,7 @@ def _analyse(A: torch.Tensor, q: torch.Tensor, used: torch.Tensor, tol: float):
     VN = V * null[:, None, :] * used[:, :, None]  # (exactly 0 on rows not in use, where eigh leaves rounding)
     qN = VN.mT @ qs[..., None]
     consistent = qN[..., 0].norm(dim=-1) <= Q_TOL * qs.norm(dim=-1)
-    # q with a flat part beyond rounding: A is only made PSD (its negative flat eigenvalues set to 0), the
+    # q with a flat part beyond drift (Q_TOL): A is only made PSD (its negative flat eigenvalues set to 0), the
     # problem is left as it is otherwise (bounded or unbounded along those directions)
     null = null & (consistent[:, None] | (evals < 0))
     VN = V * null[:, None, :] * used[:, :, None]
@@ -147,8 +147,8 @@ def _analyse(A: torch.Tensor, q: torch.Tensor, used: torch.Tensor, tol: float):
 
 class FlatProjection(torch.autograd.Function):
     """(A, q) → (Ã, q̃, Π_N, consistent, ref) of the selected elements (module docstring): flat eigenvalues set to
-    zero and q's flat part removed where it is rounding (``consistent``); elsewhere only negative flat eigenvalues
-    set to zero.  Π_N: the projector onto the directions whose eigenvalue was set to zero.
+    zero and q's flat part removed where it is drift (≤ Q_TOL·‖q‖: ``consistent``); elsewhere only negative flat
+    eigenvalues set to zero.  Π_N: the projector onto the directions whose eigenvalue was set to zero.
 
     A: (B, n, n) symmetric, q: (B, n), float64; used: (B, n) bool.  Rows not in use pass through unchanged.
     """
