@@ -138,7 +138,12 @@ def solve_cone_qp(
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
     A, q, flats = flat.project_flat(A, q, mu, active, d, flat.psd_tol(out_dtype))
     opts = (tol, acceptable_tol, max_iter, on_failure)
-    if flats is not None and flats.consistent.any():
+    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower))
+    if flats is not None and flats.consistent.any() and not needs_grad:  # (one solve, then the least-norm move)
+        f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
+        f = flat.minimum_norm(f, flats, mu, lower, active, d)[0]
+        f = torch.where((result.status >= Status.MAX_ITER)[:, None], torch.zeros_like(f), f)
+    elif flats is not None and flats.consistent.any():
         # the minimum-norm minimiser (solver/flat.py): where the minimisers are not unique, one inside their set is
         # solved for again, differentiably, as the unique minimiser of the problem with curvature on the flat
         # directions centred on it, and moved from there to the least-norm one
