@@ -15,19 +15,24 @@ Definitions (per batch element, on the rows in use: active contacts, without the
 - q's component along the flat directions, Π_N q, is a velocity that no contact impulse can change (the joints
   fix it): for physical data q = J v, and Π_N q = 0 when v obeys the joints (J_E v = 0).  The integrator leaves a
   drift (measured in the ground-truth simulation of the gyroscope with μ = 1.2: ‖Π_N q‖/‖q‖ median 1e-4, at most
-  2e-2; in training up to 0.1 for all but 0.1 % of the problems, benchmarks/flat_stats.py).  Where it is at
-  most ``Q_TOL`` = 0.1 of ‖q‖ it is taken as such drift and dropped with the flat eigenvalues: the minimisers then
-  form a set f + (flat directions) ∩ cones with one velocity change A·f and one objective, and the solver returns
+  2e-2; in training up to 0.1 for all but 0.1 % of the problems, benchmarks/flat_stats.py).  It is dropped with
+  the flat eigenvalues where it is at the level of A's rounding (≤ τ·‖q‖), and where it is drift
+  (≤ ``Q_TOL`` = 0.1) and a flat direction enters the friction cones (where, kept, it would make the QP unbounded
+  or pick the far end of an unbounded set); elsewhere the drift picks the minimiser, which is then unique, as it
+  does in the published code.  Where dropped, the
+  minimisers form a set f + (flat directions) ∩ cones with one velocity change A·f and one objective; the solver
+  returns
   the one of **minimum norm** (so that the impulse, and the restitution bound e·f_n built on it, are bounded and
   do not depend on the solver): exactly, in closed form, where there is one flat direction (the gyroscope; a
   pendulum bob); by exact line steps along the flat directions where there are several, which reduce the norm but
   can stop short of the least one where the cones cut the flat space obliquely (measured: within 2 % in the
   tests, within 1e-6 for d = 1, 2) (``minimum_norm``).  Dropping a drift δ changes the solution by O(δ) where the
   QP is bounded, and removes the unboundedness that a drift into the cone would cause.
-- A larger flat part is a velocity that violates the joints, not drift: only the negative flat eigenvalues are set
-  to zero and the problem is solved as it is: bounded if q pushes the impulse out of the cones along the flat
-  directions, else reported ``UNBOUNDED`` (physically: an impulse of any size inside the friction cones that the
-  joints absorb, lowering the objective without limit; the contact cannot act on that velocity).
+- Where it is kept (and for a larger flat part, a velocity that violates the joints, not drift), only the negative
+  flat eigenvalues are set to zero and the problem is solved as it is: bounded if q pushes the impulse out of
+  the cones along the flat directions, else reported ``UNBOUNDED`` (physically: an impulse of any size inside the
+  friction cones that the joints absorb, lowering the objective without limit; the contact cannot act on that
+  velocity).
 
 Gradients are those of this map (A, q, μ, lower) → minimiser: the flat projector Π_N moves with A (first-order
 eigenvector perturbation), which carries the derivative of removing q's flat part; the eigenvalues set to zero carry
@@ -50,7 +55,7 @@ from numba import njit
 
 from diffcontact.errors import IndefiniteMatrixError
 
-Q_TOL = 0.1  # q's flat part up to this (relative) is drift of the constraint velocities, dropped (docstring)
+Q_TOL = 0.1  # ... up to this, drift of the constraint velocities, dropped where a flat direction enters the cones
 # a set of minimisers narrower than this (relative) is a point (along a line tangent to a cone, rounding alone
 # opens a gap of ~1e-8)
 UNIQUE_TOL = 1e-6
@@ -122,8 +127,9 @@ def _flat_range(A, used, tol, out, start, stop):
         out[b] = flat
 
 
-def _analyse(A: torch.Tensor, q: torch.Tensor, used: torch.Tensor, tol: float):
-    """Eigen-analysis of the selected elements (float64, no autograd); see ``FlatProjection``."""
+def _analyse(A, q, used, tol: float, mu=None):
+    """Eigen-analysis of the selected elements (float64, no autograd); see ``FlatProjection``.  mu: (B, K), to
+    tell where a single flat direction enters the cones (None: assume it does)."""
     mask = used[:, :, None] & used[:, None, :]
     diag = torch.where(used, A.diagonal(dim1=-2, dim2=-1), torch.zeros_like(q))
     ref = diag.amax(-1).clamp_min(torch.finfo(A.dtype).tiny)
@@ -135,7 +141,8 @@ def _analyse(A: torch.Tensor, q: torch.Tensor, used: torch.Tensor, tol: float):
     qs = q * used
     VN = V * null[:, None, :] * used[:, :, None]  # (exactly 0 on rows not in use, where eigh leaves rounding)
     qN = VN.mT @ qs[..., None]
-    consistent = qN[..., 0].norm(dim=-1) <= Q_TOL * qs.norm(dim=-1)
+    part = qN[..., 0].norm(dim=-1) / qs.norm(dim=-1).clamp_min(torch.finfo(q.dtype).tiny)
+    consistent = (part <= tol) | ((part <= Q_TOL) & _enters_cones(VN, null, used, mu))
     # q with a flat part beyond drift (Q_TOL): A is only made PSD (its negative flat eigenvalues set to 0), the
     # problem is left as it is otherwise (bounded or unbounded along those directions)
     null = null & (consistent[:, None] | (evals < 0))
@@ -143,6 +150,28 @@ def _analyse(A: torch.Tensor, q: torch.Tensor, used: torch.Tensor, tol: float):
     PiN = VN @ VN.mT
     N = (VN * evals[:, None, :]) @ VN.mT  # the flat part of A, removed
     return dict(evals=evals, V=V, null=null, PiN=PiN, N=N, ref=ref, consistent=consistent, indefinite=indefinite)
+
+
+def _enters_cones(VN, null, used, mu):
+    """(B,) bool: the flat directions can enter the friction cones: with one flat direction v, v or −v lies in
+    every active contact's cone (v_n ≥ 0, ‖v_t‖ ≤ μ v_n, up to 1e-9); with several, assumed."""
+    B, n = null.shape
+    enters = torch.ones(B, dtype=torch.bool)
+    one = null.sum(-1) == 1
+    if mu is None or not one.any():
+        return enters
+    K = mu.shape[-1]
+    d = n // K
+    v = VN.sum(-1).view(B, K, d)  # (the single flat eigenvector where there is one)
+    rows = used.view(B, K, d)[..., 0]
+
+    def inside(v):
+        ok = v[..., 0] >= -1e-9
+        if d > 1:
+            ok = ok & (v[..., 1:].norm(dim=-1) <= mu * v[..., 0] + 1e-9)
+        return (ok | ~rows).all(-1)
+
+    return torch.where(one, inside(v) | inside(-v), enters)
 
 
 class FlatProjection(torch.autograd.Function):
@@ -154,8 +183,8 @@ class FlatProjection(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, A, q, used, tol, batch_index):  # noqa: D102
-        a = _analyse(A, q, used, tol)
+    def forward(ctx, A, q, used, tol, batch_index, mu=None):  # noqa: D102
+        a = _analyse(A, q, used, tol, mu)
         if a["indefinite"].any():
             bad = batch_index[a["indefinite"]].tolist()
             worst = (a["evals"][:, 0] / a["ref"])[a["indefinite"]].min().item()
@@ -194,7 +223,7 @@ class FlatProjection(torch.autograd.Function):
         Z = F * X
         Z = Z + Z.mT
         grad_A = grad_A + torch.where(mask, V @ Z @ V.mT, torch.zeros_like(gA))
-        return grad_A, grad_q, None, None, None
+        return grad_A, grad_q, None, None, None, None
 
 
 @dataclass
@@ -216,9 +245,9 @@ class FlatSet:
 def project_flat(A, q, mu, active, d, tol):
     """The problem data with flat directions resolved (module docstring).
 
-    A: (B, n, n), q: (B, n), mu, active: (B, K).  Returns (A, q, flat): unchanged tensors and flat = None where no
-    element has a flat direction; else float64 tensors (A symmetrised in the changed elements) and a ``FlatSet``.
-    Differentiable (``FlatProjection``).
+    A: (B, n, n), q: (B, n), mu, active: (B, K); tol: ``psd_tol`` of the input dtype.  Returns (A, q, flat):
+    unchanged tensors and flat = None where no element has a flat direction; else float64 tensors (A symmetrised
+    in the changed elements) and a ``FlatSet``.  Differentiable (``FlatProjection``).
     """
     used = rows_in_use(mu.detach(), active, d)
     A64 = A.to(torch.float64)
@@ -228,7 +257,9 @@ def project_flat(A, q, mu, active, d, tol):
     if not found.any():
         return A, q, None
     idx = torch.from_numpy(found).nonzero().flatten()
-    At, qt, PiN, consistent, ref = FlatProjection.apply(sym[idx], q64[idx], used[idx], tol, idx)
+    At, qt, PiN, consistent, ref = FlatProjection.apply(
+        sym[idx], q64[idx], used[idx], tol, idx, mu.detach()[idx].to(torch.float64)
+    )
     return A64.index_copy(0, idx, At), q64.index_copy(0, idx, qt), FlatSet(idx, PiN, consistent, ref)
 
 
