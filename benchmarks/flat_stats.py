@@ -26,13 +26,16 @@ def replay(module: ContactLightningModule, data: ContactDataModule) -> dict:
     statuses = {s.name: 0 for s in Status}
     analyse = flat._analyse
 
-    def recording(A, q, used, tol):
-        out = analyse(A, q, used, tol)
+    def recording(A, q, used, tol, mu=None):
+        out = analyse(A, q, used, tol, mu)
         qs = q * used
         VN = out["V"] * (out["evals"].abs() <= tol * out["ref"][:, None])[:, None, :] * used[:, :, None]
         ratio = (VN.mT @ qs[..., None])[..., 0].norm(dim=-1) / qs.norm(dim=-1).clamp_min(1e-300)
         c = out["consistent"]
         ratios.append(ratio)
+        stats["enters_cones"] = stats.get("enters_cones", 0) + int(
+            flat._enters_cones(VN, out["evals"].abs() <= tol * out["ref"][:, None], used, mu).sum()
+        )
         stats["flat"] += len(c)
         stats["consistent"] += int(c.sum())
         if c.any():
