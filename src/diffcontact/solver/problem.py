@@ -118,7 +118,9 @@ def solve_cone_qp(
     """Solve a batch of contact cone QPs; differentiable by implicit differentiation.
 
     Args:
-        A: (B, K·d, K·d) symmetric PSD inverse inertia in contact space (may be singular).
+        A: (B, K·d, K·d) symmetric PSD inverse inertia in contact space, possibly singular and PSD only up to
+            rounding: flat directions and non-unique minimisers are resolved as stated in ``solver/flat.py``
+            (the minimiser of least norm); a genuinely indefinite A raises ``IndefiniteMatrixError``.
         q: (B, K·d) linear term (contact velocity, minus the target velocity in the restitution phase).
         mu: (B, K) friction coefficients ≥ 0 (unused for d = 1).
         lower: (B, K) lower bounds ≥ 0 on the normal impulses (restitution phase: e·f_n of compression).
