@@ -28,16 +28,11 @@ def replay(module: ContactLightningModule, data: ContactDataModule) -> dict:
 
     def recording(A, q, used, tol, mu=None):
         out = analyse(A, q, used, tol, mu)
-        qs = q * used
-        VN = out["V"] * (out["evals"].abs() <= tol * out["ref"][:, None])[:, None, :] * used[:, :, None]
-        ratio = (VN.mT @ qs[..., None])[..., 0].norm(dim=-1) / qs.norm(dim=-1).clamp_min(1e-300)
-        c = out["consistent"]
-        ratios.append(ratio)
-        stats["enters_cones"] = stats.get("enters_cones", 0) + int(
-            flat._enters_cones(VN, out["evals"].abs() <= tol * out["ref"][:, None], used, mu).sum()
-        )
+        ratio, c = out["part"], out["consistent"]  # (q's flat part relative to q, and whether it was dropped)
         stats["flat"] += len(c)
         stats["consistent"] += int(c.sum())
+        stats["enters_cones"] = stats.get("enters_cones", 0) + int(out["enters"].sum())
+        ratios.append(ratio)
         if c.any():
             stats["ratio_max_consistent"] = max(stats["ratio_max_consistent"], float(ratio[c].max()))
         if (~c).any():

@@ -142,14 +142,26 @@ def _analyse(A, q, used, tol: float, mu=None):
     VN = V * null[:, None, :] * used[:, :, None]  # (exactly 0 on rows not in use, where eigh leaves rounding)
     qN = VN.mT @ qs[..., None]
     part = qN[..., 0].norm(dim=-1) / qs.norm(dim=-1).clamp_min(torch.finfo(q.dtype).tiny)
-    consistent = (part <= tol) | ((part <= Q_TOL) & _enters_cones(VN, null, used, mu))
+    enters = _enters_cones(VN, null, used, mu)
+    consistent = (part <= tol) | ((part <= Q_TOL) & enters)
     # q with a flat part beyond drift (Q_TOL): A is only made PSD (its negative flat eigenvalues set to 0), the
     # problem is left as it is otherwise (bounded or unbounded along those directions)
     null = null & (consistent[:, None] | (evals < 0))
     VN = V * null[:, None, :] * used[:, :, None]
     PiN = VN @ VN.mT
     N = (VN * evals[:, None, :]) @ VN.mT  # the flat part of A, removed
-    return dict(evals=evals, V=V, null=null, PiN=PiN, N=N, ref=ref, consistent=consistent, indefinite=indefinite)
+    return dict(
+        evals=evals,
+        V=V,
+        null=null,
+        PiN=PiN,
+        N=N,
+        ref=ref,
+        consistent=consistent,
+        indefinite=indefinite,
+        part=part,
+        enters=enters,
+    )
 
 
 def _enters_cones(VN, null, used, mu):

@@ -140,15 +140,26 @@ def solve_cone_qp(
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
     A, q, flats = flat.project_flat(A, q, mu, active, d, flat.psd_tol(out_dtype))
     opts = (tol, acceptable_tol, max_iter, on_failure)
-    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower))
-    if flats is not None and flats.consistent.any() and not needs_grad:  # (one solve, then the least-norm move)
+    if flats is not None and flats.consistent.any():
+        f, result = _solve_least_norm(A, q, mu, lower, active, d, flats, opts)
+    else:
         f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
-        f = flat.minimum_norm(f, flats, mu, lower, active, d)[0]
-        f = torch.where((result.status >= Status.MAX_ITER)[:, None], torch.zeros_like(f), f)
-    elif flats is not None and flats.consistent.any():
-        # the minimum-norm minimiser (solver/flat.py): where the minimisers are not unique, one inside their set is
-        # solved for again, differentiably, as the unique minimiser of the problem with curvature on the flat
-        # directions centred on it, and moved from there to the least-norm one
+    f = f.to(out_dtype)
+    if return_info:
+        return f, SolverInfo(status=result.status, iterations=result.iterations, residual=result.residual)
+    return f
+
+
+def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
+    """Solve a batch some of whose elements have non-unique minimisers and return the least-norm ones
+    (``solver/flat.py``): (f, result) as ``_solve_differentiable``.
+
+    Without gradients: one solve, then the move to the least-norm minimiser.  With gradients, where the minimisers
+    are not unique: any minimiser (first solve), a point inside their set, that point solved for again,
+    differentiably, as the unique minimiser of the problem with curvature on the flat directions centred on it,
+    and the move from there to the least-norm one (whose derivative is that of the cone bounding the set).
+    """
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower)):
         with torch.no_grad():
             sub = flats.idx[flats.consistent]
             first, first_result = _solve_differentiable(
@@ -163,13 +174,11 @@ def solve_cone_qp(
         f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
         result.status[sub] = torch.maximum(result.status[sub], first_result.status)
         f = flat.minimum_norm(f, flats, mu, lower, active, d, sel=nonunique)[0]
-        f = torch.where((result.status >= Status.MAX_ITER)[:, None], torch.zeros_like(f), f)
     else:
         f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
-    f = f.to(out_dtype)
-    if return_info:
-        return f, SolverInfo(status=result.status, iterations=result.iterations, residual=result.residual)
-    return f
+        f = flat.minimum_norm(f, flats, mu, lower, active, d)[0]
+    # (a failed element's zeros may have been moved along its flat directions)
+    return torch.where((result.status >= Status.MAX_ITER)[:, None], torch.zeros_like(f), f), result
 
 
 def _solve_differentiable(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure):

@@ -9,6 +9,7 @@ entirely (no update, no weight decay, no moment update) and counted.  Logged per
 from __future__ import annotations
 
 import logging
+from collections import Counter
 
 import lightning.pytorch as pl
 import torch
@@ -40,8 +41,7 @@ class ContactLightningModule(pl.LightningModule):
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.task = build_task(task)
-        self.solver_failures = 0
-        self.solver_failures_by_status: dict[str, int] = {}
+        self.solver_failures_by_status: Counter[str] = Counter()
         self.skipped_steps = 0
         net = build_model(
             self.task,
@@ -59,17 +59,15 @@ class ContactLightningModule(pl.LightningModule):
         """The contact solver, continuing with zero impulses on failure and counting them."""
         f, info = solve_cone_qp(A, q, mu, lower, active, on_failure="count", return_info=True)
         if info.n_failed:
-            self.solver_failures += info.n_failed
-            for code in info.status[info.failed].tolist():
-                name = Status(code).name
-                self.solver_failures_by_status[name] = self.solver_failures_by_status.get(name, 0) + 1
-            log.warning(
-                "contact solver failed for %d of %d problems (status %s); their impulses are zero",
-                info.n_failed,
-                len(info.status),
-                sorted({Status(c).name for c in info.status[info.failed].tolist()}),
-            )
+            names = Counter(Status(c).name for c in info.status[info.failed].tolist())
+            self.solver_failures_by_status.update(names)
+            log.warning("contact solver failed for %s of %d problems; their impulses are zero", dict(names), len(f))
         return f
+
+    @property
+    def solver_failures(self) -> int:
+        """Contact problems the solver failed on so far (impulses replaced by zeros)."""
+        return sum(self.solver_failures_by_status.values())
 
     def loss(self, batch) -> torch.Tensor:
         """Mean absolute error of the predicted chunk: x, v (B, L, P, d)."""
@@ -120,12 +118,12 @@ class ContactLightningModule(pl.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["counters"] = {
             "skipped_steps": self.skipped_steps,
-            "solver_failures": self.solver_failures,
             "solver_failures_by_status": dict(self.solver_failures_by_status),
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         counters = checkpoint.get("counters", {})
         self.skipped_steps = counters.get("skipped_steps", 0)
-        self.solver_failures = counters.get("solver_failures", 0)
-        self.solver_failures_by_status = dict(counters.get("solver_failures_by_status", {}))
+        # (checkpoints before the count by status hold the total only)
+        old = {"unknown": counters["solver_failures"]} if counters.get("solver_failures") else {}
+        self.solver_failures_by_status = Counter(counters.get("solver_failures_by_status", old))

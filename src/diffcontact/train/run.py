@@ -197,7 +197,7 @@ def train_run(
     summary["epochs_trained"] = int(trainer.current_epoch)
     summary["skipped_steps"] = module.skipped_steps
     summary["solver_failures"] = module.solver_failures
-    summary["solver_failures_by_status"] = module.solver_failures_by_status
+    summary["solver_failures_by_status"] = dict(module.solver_failures_by_status)
     summary["wall_time_s"] = time.perf_counter() - started
     summary["run_dir"] = str(run)
     _write_json(run / "learned.json", summary)
