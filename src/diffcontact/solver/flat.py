@@ -54,12 +54,17 @@ import torch
 from numba import njit
 
 from diffcontact.errors import IndefiniteMatrixError
+from diffcontact.solver.ipm import INACCURATE
 
 Q_TOL = 0.1  # ... up to this, drift of the constraint velocities, dropped where a flat direction enters the cones
 # a set of minimisers narrower than this (relative) is a point (along a line tangent to a cone, rounding alone
 # opens a gap of ~1e-8)
 UNIQUE_TOL = 1e-6
-SWEEPS = 20  # of exact line steps in the minimum-norm stage, with more than one flat direction
+# the augmented Lagrangian stage (several flat directions): penalty relative to the unit Hessian, steps, tolerance
+RHO, RHO_MAX = 1e4, 1e5
+ALM_STEPS = 20
+ALM_TOL = 1e-13  # relative miss of the equality at convergence
+ALM_ACCEPT = 1e-9  # ... below which an iterate counts as a minimiser
 
 
 def psd_tol(dtype: torch.dtype) -> float:
@@ -292,82 +297,129 @@ def centre_on(A, q, flat: FlatSet, sel, f_star):
     return A, q
 
 
-def minimum_norm(f, flat: FlatSet, mu, lower, active, d, sel=None):
+def minimum_norm(f, flat: FlatSet, mu, lower, active, d, solve, sel=None):
     """Move the minimisers f of the elements in ``flat`` whose q had no flat part to the minimiser of least norm.
 
-    Every minimiser has the range part Π_R f (Π_R = I − Π_N); the others are f + v, v in the flat space, inside the
-    cones.  Along one flat direction v these are the points f + t·v of an interval of t (``_line_interval``, closed
-    form per contact), and the least norm is at t = −f·v/‖v‖² clipped to it.  With one flat direction (the
-    gyroscope; a pendulum bob on the ground) that is the minimum-norm minimiser, exactly.  With several, the same
-    exact step is taken along the steepest direction −Π_N f and along the flat space's coordinate directions
-    (columns of Π_N), in up to ``SWEEPS`` sweeps: every iterate is a minimiser (A·f exact, inside the cones) of
-    smaller norm, but where the cones' boundary cuts the flat space obliquely the sweeps can stop short of the least
-    norm (docs/solver.md gives the measured gap).  Differentiable (torch operations).
+    Every minimiser has the range part r = Π_R f (Π_R = I − Π_N); the others are r + v, v in the flat space, inside
+    the cones, and the least-norm one is the projection of 0 onto that set.  With one flat direction v (the
+    gyroscope; a pendulum bob on the ground) these are the points f + t·v of an interval of t (``_line_interval``,
+    closed form per contact), and the least norm is at t = −f·v/‖v‖² clipped to it.  With several, it is the
+    solution of  min ½‖g‖²  over the cones with Π_R g = r, found by the augmented Lagrangian method on that
+    equality (``_least_norm_several``): each step a strictly convex cone QP (``solve``), the error divided by
+    about 1 + ``RHO`` per step, to the solver's accuracy.  Differentiable (torch operations and ``solve``).
 
-    Where every such line only touches the cones at f (a sliding contact: the flat direction is tangent to its
-    cone), the minimiser is unique after all.
-
-    f: (B, n) float64; mu, lower: (B, K); active: (B, K) bool; sel: (m,) bool, the elements of ``flat`` to treat
-    (default: the consistent ones).  Returns f with those rows replaced, the (m,) bool mask of the elements
-    whose minimisers are not unique (a line of width > UNIQUE_TOL·max(1, ‖f‖∞) in the cones), and for the treated
-    elements a minimiser inside their set of minimisers (one flat direction: halfway from the least-norm one to the
-    far end or by max(1, ‖f‖∞); several: the given f, an interior-point solution), without gradient.
+    f: (B, n) float64; mu, lower: (B, K); active: (B, K) bool; solve(idx, A, q) → (g, status): the cone QP of the
+    batch elements idx (m,) with A (m, n, n) and q (m, n), differentiable; sel: (m,) bool, the elements of ``flat``
+    to treat (default: the consistent ones).  Returns f with those rows replaced and the status of their
+    least-norm stage ((m',) ``Status`` codes, in their order; 0 where it is in closed form).
     """
     sel = flat.consistent if sel is None else sel
+    status = torch.zeros(len(flat.idx), dtype=torch.long)
+    nullity = _nullity(flat.PiN)
+    one = sel & (nullity == 1)
+    if one.any():
+        idx = flat.idx[one]
+        f = f.index_copy(0, idx, _least_norm_one(f[idx], flat.PiN[one], mu[idx], lower[idx], active[idx], d)[0])
+    several = sel & (nullity > 1)
+    if several.any():
+        idx = flat.idx[several]
+        x, status[several], _ = _least_norm_several(idx, f[idx], flat.PiN[several], solve)
+        f = f.index_copy(0, idx, x)
+    return f, status[sel]
+
+
+def nonunique(f, flat: FlatSet, mu, lower, active, d, solve):
+    """The consistent elements of ``flat`` whose minimisers f (B, n) are not unique, and a minimiser inside their
+    set, on which ``centre_on`` centres the problem for a well-posed gradient.  One flat direction: where the line
+    along it has width > UNIQUE_TOL·max(1, ‖f‖∞) in the cones (where it only touches the cones at f, a sliding
+    contact whose flat direction is tangent to its cone, the minimiser is unique after all); the point halfway from
+    the least-norm one to the far end or by max(1, ‖f‖∞).  Several: where the least-norm minimiser is farther than
+    that from f, an interior-point solution (which lies away from the set's faces, so it is not the least-norm point
+    of a set that is not a single point); f itself.  solve: as for ``minimum_norm``.  Returns a mask (m,) over the
+    elements of ``flat`` and the points (m', n) for the consistent ones; no gradient.
+    """
     spread = torch.zeros(len(flat.idx), dtype=torch.bool)
-    inner = torch.zeros(len(flat.idx), f.shape[-1], dtype=f.dtype)
-    nullity = torch.diagonal(flat.PiN, dim1=-2, dim2=-1).sum(-1).round().long()
-    for group in (sel & (nullity == 1), sel & (nullity > 1)):  # (each element's treatment is its own)
-        if group.any():
-            idx = flat.idx[group]
-            x, spread[group], inner[group] = _least_norm(f[idx], flat.PiN[group], mu[idx], lower[idx], active[idx], d)
-            f = f.index_copy(0, idx, x)
-    return f, spread, inner[sel]
+    inner = f[flat.idx].detach().clone()
+    nullity = _nullity(flat.PiN)
+    one, several = flat.consistent & (nullity == 1), flat.consistent & (nullity > 1)
+    if one.any():
+        idx = flat.idx[one]
+        _, spread[one], inner[one] = _least_norm_one(
+            f[idx].detach(), flat.PiN[one], mu[idx], lower[idx], active[idx], d
+        )
+    if several.any():
+        spread[several] = _least_norm_several(flat.idx[several], f[flat.idx[several]], flat.PiN[several], solve)[2]
+    return spread, inner[flat.consistent]
 
 
-def _least_norm(x, PiN, mu, lower, active, d):
-    """``minimum_norm`` for elements of one kind (all with one flat direction, or all with several):
-    returns (x moved, spread (m,), inner (m, n))."""
-    n = x.shape[-1]
+def _nullity(PiN):
+    return torch.diagonal(PiN, dim1=-2, dim2=-1).sum(-1).round().long()
+
+
+def _least_norm_one(x, PiN, mu, lower, active, d):
+    """``minimum_norm`` for elements with one flat direction: returns (x moved, spread (m,), inner (m, n))."""
     start = x.detach()
-    diag = torch.diagonal(PiN, dim1=-2, dim2=-1)
-    nullity = diag.sum(-1).round().long()
-    ranked, order = diag.sort(-1, descending=True)
-    # the columns of Π_N with the largest diagonals, one per flat direction of the element (a column whose diagonal
-    # is small is a direction known only to rounding: left out)
-    columns = [
-        PiN.gather(-1, order[:, k, None, None].expand(-1, n, 1))[..., 0]
-        * ((k < nullity) & (ranked[:, k] > 1e-6))[:, None]
-        for k in range(int(nullity.max()))
-    ]
-    one = int(nullity.max()) == 1
-    sweeps = 1 if one else SWEEPS
-    width = torch.zeros(len(x), dtype=x.dtype)
-    inner = start
-    live = torch.ones(len(x), dtype=torch.bool)  # (each element sweeps until its own norm stops falling)
+    # the flat direction: Π_N's column with the largest diagonal (Π_N = v vᵀ), normalised
+    j = torch.diagonal(PiN, dim1=-2, dim2=-1).argmax(-1)
+    v = PiN.gather(-1, j[:, None, None].expand(-1, x.shape[-1], 1))[..., 0]
+    v = v / v.norm(dim=-1, keepdim=True)
+    lo, hi = _line_interval(x, v, mu, lower, active, d)
     scale = start.abs().amax(-1).clamp_min(1.0)
-    for _ in range(sweeps):
-        before = x.detach().norm(dim=-1)
-        for v in columns if one else [-(PiN @ x[..., None])[..., 0], *columns]:
-            norm = v.norm(dim=-1, keepdim=True)
-            v = v / norm.clamp_min(1e-12)
-            lo, hi = _line_interval(x, v, mu, lower, active, d)
-            along = (norm[:, 0] > 1e-12) & live
-            width = torch.maximum(width, torch.where(along, (hi - lo).detach(), 0.0))
-            # a line that only touches the cones (tangent: its ends known to the square root of rounding) is no step
-            along = along & ((hi - lo).detach() > UNIQUE_TOL * scale)
-            t = torch.minimum(torch.maximum(-(x * v).sum(-1), lo), hi)
-            if one:  # a point halfway into the set of minimisers from the least one (``centre_on``)
-                reach = 0.5 * torch.minimum(hi - lo, scale).detach()
-                tc = torch.where(t <= lo, lo + reach, torch.where(t >= hi, hi - reach, t)).detach()
-                inner = x.detach() + torch.where(along, tc, 0.0)[:, None] * v.detach()
-            x = x + torch.where(along, t, 0.0)[:, None] * v
-        live = live & (x.detach().norm(dim=-1) < before * (1 - 1e-15))
+    # a line that only touches the cones (tangent: its ends known to the square root of rounding) is no step
+    spread = (hi - lo).detach() > UNIQUE_TOL * scale
+    t = torch.minimum(torch.maximum(-(x * v).sum(-1), lo), hi)
+    # a point halfway into the set of minimisers from the least one (``centre_on``)
+    reach = 0.5 * torch.minimum(hi - lo, scale).detach()
+    tc = torch.where(t <= lo, lo + reach, torch.where(t >= hi, hi - reach, t)).detach()
+    inner = start + torch.where(spread, tc, 0.0)[:, None] * v.detach()
+    return x + torch.where(spread, t, 0.0)[:, None] * v, spread, inner
+
+
+def _least_norm_several(idx, x, PiN, solve):
+    """The least-norm point g of the cones with Π_R g = Π_R x (m elements, several flat directions): the augmented
+    Lagrangian method on the equality, min ½‖g‖² + ½ρ‖Π_R g − w‖² over the cones with the target w moved by the
+    miss Π_R x − Π_R g after each solve (the multiplier ρ(w − Π_R x) in disguise).  The penalised problem is strictly
+    convex (Hessian I + ρΠ_R); its solution map, unrolled over the steps, carries the derivative, exact at the
+    fixed point.  An element whose miss falls by less than 100× in a step (the cones' faces nearly parallel to the
+    equality) has its ρ raised 10× up to ``RHO_MAX`` (beyond, the penalised problem is too ill-conditioned to solve
+    to the accuracy needed); each element steps until its own miss is below ALM_TOL·max(1, ‖x‖∞), so that its
+    result does not depend on its batch.
+
+    Where the set of minimisers is a single point (the cones touch the flat space only there) the method stalls;
+    an element that has not converged keeps x, and is reported INACCURATE if its last iterate was a minimiser
+    (miss ≤ ALM_ACCEPT) away from x (the set is not a point, and x is not its least-norm point).  So does an element
+    whose least-norm point is within UNIQUE_TOL·max(1, ‖x‖∞) of x (a set that is a point up to that).  Returns
+    g (m, n), status (m,) (of its last solve where g is not x, else 0 or INACCURATE) and moved (m,) bool: g is
+    not x."""
+    m, n = x.shape
+    eye = torch.eye(n, dtype=x.dtype)
+    PiR = eye - PiN
+    r = (PiR @ x[..., None])[..., 0]
+    scale = x.detach().abs().amax(-1).clamp_min(1.0)
+    rho = torch.full((m,), RHO, dtype=x.dtype)
+    w, g = r, x
+    status = torch.zeros(m, dtype=torch.long)
+    live = torch.ones(m, dtype=torch.bool)
+    size = torch.full((m,), torch.inf, dtype=x.dtype)
+    for _ in range(ALM_STEPS):
+        at = live.nonzero().flatten()
+        g_at, step_status = solve(idx[at], eye + rho[at, None, None] * PiR[at], -rho[at, None] * w[at])
+        g = g.index_copy(0, at, g_at)
+        status[at] = step_status
+        miss = r - (PiR @ g[..., None])[..., 0]
+        before, size = size, miss.detach().abs().amax(-1)
+        live = live & (size > ALM_TOL * scale)
         if not live.any():
             break
-    # (several flat directions: the start, an interior-point solution, lies inside the set, away from its faces)
-    spread = width > UNIQUE_TOL * scale
-    return x, spread, inner
+        grow = torch.where(live & (size > 1e-2 * before) & (rho < RHO_MAX), 10.0, 1.0)
+        # (the multiplier ρ(w − r) is kept where ρ grows)
+        w = torch.where(live[:, None], r + (w + miss - r) / grow[:, None], w)
+        rho = rho * grow
+    moved = (g.detach() - x.detach()).abs().amax(-1) > UNIQUE_TOL * scale
+    short = live & moved & (size <= ALM_ACCEPT * scale)
+    status = torch.where(moved & ~live, status, torch.where(short, INACCURATE, 0))
+    moved = moved & ~live
+    return torch.where(moved[:, None], g, x), status, moved
 
 
 def _line_interval(f, v, mu, lower, active, d):

@@ -159,26 +159,46 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     differentiably, as the unique minimiser of the problem with curvature on the flat directions centred on it,
     and the move from there to the least-norm one (whose derivative is that of the cone bounding the set).
     """
+
     if torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower)):
+        sub = flats.idx[flats.consistent]
         with torch.no_grad():
-            sub = flats.idx[flats.consistent]
             first, first_result = _solve_differentiable(
                 A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d, *opts
             )
-            _, spread, inner = flat.minimum_norm(
-                first, flats.subset(flats.consistent), mu[sub], lower[sub], active[sub], d
+            spread, inner = flat.nonunique(
+                first,
+                flats.subset(flats.consistent),
+                mu[sub],
+                lower[sub],
+                active[sub],
+                d,
+                _cone_qp(mu[sub], lower[sub], active[sub], d, opts),
             )
         nonunique = torch.zeros_like(flats.consistent)
         nonunique[flats.consistent] = spread
         A, q = flat.centre_on(A, q, flats, nonunique, inner[spread])
         f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
         result.status[sub] = torch.maximum(result.status[sub], first_result.status)
-        f = flat.minimum_norm(f, flats, mu, lower, active, d, sel=nonunique)[0]
+        treated = nonunique
     else:
         f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
-        f = flat.minimum_norm(f, flats, mu, lower, active, d)[0]
+        treated = flats.consistent
+    f, status = flat.minimum_norm(f, flats, mu, lower, active, d, _cone_qp(mu, lower, active, d, opts), sel=treated)
+    result.status[flats.idx[treated]] = torch.maximum(result.status[flats.idx[treated]], status)
     # (a failed element's zeros may have been moved along its flat directions)
     return torch.where((result.status >= Status.MAX_ITER)[:, None], torch.zeros_like(f), f), result
+
+
+def _cone_qp(mu, lower, active, d, opts):
+    """solve(idx, A, q) → (f, status) of the elements idx of this batch with A (m, n, n), q (m, n): the cone QPs
+    of the least-norm stage (``flat.minimum_norm``), differentiable."""
+
+    def solve(idx, A, q):
+        f, result = _solve_differentiable(A, q, mu[idx], lower[idx], active[idx], d, *opts)
+        return f, result.status
+
+    return solve
 
 
 def _solve_differentiable(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure):
