@@ -163,7 +163,7 @@ def test_gyroscope_with_a_wide_friction_cone_simulates_without_failure():
 
 @pytest.mark.parametrize("K,d", [(19, 1), (2, 3), (5, 2)])
 def test_an_elements_solution_and_gradient_do_not_depend_on_its_batch(K, d):
-    """The flat stage treats every element on its own (its flat directions, its line steps)."""
+    """The flat stage treats every element on its own (its flat directions, its least-norm steps)."""
     gen = torch.Generator().manual_seed(3 + K)
     A, q, mu, lower, _, _ = near_psd_instance(gen, 40, K, d)
 

@@ -19,15 +19,13 @@ Definitions (per batch element, on the rows in use: active contacts, without the
   the flat eigenvalues where it is at the level of A's rounding (≤ τ·‖q‖), and where it is drift
   (≤ ``Q_TOL`` = 0.1) and a flat direction enters the friction cones (where, kept, it would make the QP unbounded
   or pick the far end of an unbounded set); elsewhere the drift picks the minimiser, which is then unique, as it
-  does in the published code.  Where dropped, the
-  minimisers form a set f + (flat directions) ∩ cones with one velocity change A·f and one objective; the solver
-  returns
-  the one of **minimum norm** (so that the impulse, and the restitution bound e·f_n built on it, are bounded and
-  do not depend on the solver): exactly, in closed form, where there is one flat direction (the gyroscope; a
-  pendulum bob); by exact line steps along the flat directions where there are several, which reduce the norm but
-  can stop short of the least one where the cones cut the flat space obliquely (measured: within 2 % in the
-  tests, within 1e-6 for d = 1, 2) (``minimum_norm``).  Dropping a drift δ changes the solution by O(δ) where the
-  QP is bounded, and removes the unboundedness that a drift into the cone would cause.
+  does in the published code.  Where dropped, the minimisers form a set f + (flat directions) ∩ cones with one
+  velocity change A·f and one objective; the solver returns the one of **minimum norm** (so that the impulse, and
+  the restitution bound e·f_n built on it, are bounded and do not depend on the solver): in closed form where
+  there is one flat direction (the gyroscope; a pendulum bob); where there are several, as the projection of 0
+  onto the set, by the augmented Lagrangian method on the range part with our own cone QP as the inner solver
+  (``minimum_norm``; measured against Clarabel in the tests, to its accuracy).  Dropping a drift δ changes the
+  solution by O(δ) where the QP is bounded, and removes the unboundedness that a drift into the cone would cause.
 - Where it is kept (and for a larger flat part, a velocity that violates the joints, not drift), only the negative
   flat eigenvalues are set to zero and the problem is solved as it is: bounded if q pushes the impulse out of
   the cones along the flat directions, else reported ``UNBOUNDED`` (physically: an impulse of any size inside the
