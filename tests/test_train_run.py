@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
+import torch
 
 from diffcontact.data.generate import generate_dataset
 from diffcontact.errors import ConfigError
 from diffcontact.train.module import ContactLightningModule
-from diffcontact.train.run import learned_summary, resolve_preset, train_run
+from diffcontact.train.run import resolve_preset, train_run
+from diffcontact.train.summary import learned_summary, slot_contacts
 
 
 @pytest.fixture(scope="module")
@@ -29,15 +32,20 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     assert learned == json.loads(json.dumps(summary))
     for key in ("mu", "e", "mass_ratio"):
         item = learned[key]
-        assert set(item) == {"learned", "true", "max_abs_error"}
+        assert set(item) == {"learned", "true", "max_abs_error"} | ({"identifiable"} if key != "mass_ratio" else set())
         assert len(item["learned"]) == len(item["true"])
         err = max(abs(a - b) for a, b in zip(item["learned"], item["true"]))
         assert item["max_abs_error"] == pytest.approx(err)
+    assert learned["mu"]["identifiable"] == [True] * len(learned["mu"]["true"])  # (homogeneous, balls bounce)
+    assert len(learned["collisions"]) == len(learned["mu"]["true"]) and sum(learned["collisions"]) > 0
     assert learned["mu"]["true"][0] == pytest.approx(0.2) and learned["e"]["true"][0] == pytest.approx(0.8)
     config = json.loads((run / "config.json").read_text())
     assert config["args"]["task"] == "BP1" and "torch" in config["versions"]
     assert config["args"]["preset"] == "default" and config["args"]["lr"] == 1e-2  # (epochs given explicitly)
-    assert config["args"]["epochs"] == 2
+    assert config["args"]["epochs"] == 2 and config["args"]["schedule"] == "cosine"
+    rates = [float(r["train/lr"]) for r in csv.DictReader(next((run / "logs" / "csv").rglob("metrics.csv")).open())
+             if r.get("train/lr")]  # fmt: skip
+    assert rates[0] == pytest.approx(1e-2) and rates[1] == pytest.approx(0.5 * (1e-2 + 1e-4))  # cosine, halfway
 
 
 def test_resume_continues_to_more_epochs(data_root, tmp_path):
@@ -59,15 +67,40 @@ def test_bad_arguments_are_clear_errors(data_root, tmp_path):
 
 
 def test_presets_give_the_optimiser_settings_and_explicit_values_win():
-    assert resolve_preset("default", None, None) == (200, 1e-2)
-    assert resolve_preset("published", None, None) == (1000, 1e-3)
-    assert resolve_preset("published", 5, None) == (5, 1e-3)
-    assert resolve_preset("default", None, 3e-3) == (200, 3e-3)
+    assert resolve_preset("default", None, None) == (200, 1e-2, "cosine")
+    assert resolve_preset("published", None, None) == (1000, 1e-3, "constant")
+    assert resolve_preset("published", 5, None) == (5, 1e-3, "constant")
+    assert resolve_preset("default", None, 3e-3, "constant") == (200, 3e-3, "constant")
+
+
+def _summary(task: str, chunk_x=None):
+    module = ContactLightningModule(task)
+    if chunk_x is None:
+        chunk_x = module.task.sample(2, seed=0).x[:, None].expand(-1, 2, -1, -1)  # (no contact)
+    return module, learned_summary(module.net, module.task, chunk_x)
 
 
 def test_learned_json_reports_the_moments_of_extended_bodies():
-    module = ContactLightningModule("BD1")  # one disk: second moments per unit mass r²/4 per axis
-    summary = learned_summary(module)
+    module, summary = _summary("BD1")  # one disk: second moments per unit mass r²/4 per axis
     truth = module.task.params.inertia.moments.flatten().tolist()
     assert summary["moments"]["true"] == truth and len(summary["moments"]["learned"]) == len(truth)
-    assert "moments" not in learned_summary(ContactLightningModule("BP1"))  # point masses
+    assert "moments" not in _summary("BP1")[1]  # point masses
+
+
+def test_slots_without_contacts_and_frictionless_limits_are_not_identifiable(data_root):
+    """Collisions per slot are the active candidates of the chunk frames after the first; a chunk without contact
+    identifies nothing; the rope's limits are one-dimensional, so its μ acts on nothing."""
+    from diffcontact import build_task
+    from diffcontact.data.store import load_split
+
+    task = build_task("BP1")
+    chunk_x = load_split(data_root / "BP1", "train").chunk_x
+    collisions, frictional = slot_contacts(task.system, chunk_x, task.params.mu.numel())
+    gaps = task.system.detector.gaps(chunk_x[:, 1:].flatten(0, 1).double())
+    assert collisions.sum() == (gaps < 0).sum() > 0 and torch.equal(frictional, collisions)  # (ball-wall: 2-D)
+    _, quiet = _summary("BP1")
+    assert quiet["e"]["max_abs_error"] is None and quiet["e"]["identifiable"] == [False] * len(quiet["e"]["true"])
+    rope = build_task("Rope")
+    x = 1.5 * rope.sample(8, seed=0).x  # (every link stretched by 1.5, beyond its limit 1.2: all in contact)
+    collisions, frictional = slot_contacts(rope.system, torch.stack([x, x], 1), rope.params.mu.numel())
+    assert collisions.sum() >= 8 * 10 and frictional.sum() == 0

@@ -99,7 +99,9 @@ def train(
     task: str = typer.Argument(..., help="Task name (its dataset must exist: diffcontact generate TASK)."),
     model: str = typer.Option("CM-CD-CLNN", "--model", help="CM-CD-CLNN, CM-CD-CHNN, CMr-CD-CLNN or CMr-CD-CHNN."),
     preset: str = typer.Option(
-        "default", "--preset", help="Optimiser settings: default (200 epochs, lr 1e-2) or published (1000, 1e-3)."
+        "default",
+        "--preset",
+        help="Optimiser settings: default (200 epochs, lr 1e-2 cosine-annealed) or published (1000, 1e-3 constant).",
     ),
     epochs: int = typer.Option(None, "--epochs", help="Epochs (default: the preset's)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the initial parameters and the batch order."),
@@ -107,6 +109,9 @@ def train(
     data: str = typer.Option("data", "--data", help="Dataset root (as given to diffcontact generate --out)."),
     batch_size: int = typer.Option(200, "--batch-size", help="Chunks per batch."),
     lr: float = typer.Option(None, "--lr", help="AdamW learning rate (default: the preset's)."),
+    schedule: str = typer.Option(
+        None, "--schedule", help="Learning rate over the epochs: constant or cosine (to lr/100; default: the preset's)."
+    ),
     smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of ReLU / hardsigmoid."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the run's last checkpoint."),
     progress: bool = typer.Option(True, help="Show a progress bar."),
@@ -118,7 +123,7 @@ def train(
     try:
         summary = train_run(
             task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
-            batch_size=batch_size, lr=lr, mu_transform="softplus" if smooth else "relu",
+            batch_size=batch_size, lr=lr, schedule=schedule, mu_transform="softplus" if smooth else "relu",
             e_transform="sigmoid" if smooth else "hardsigmoid", resume=resume, progress=progress,
         )  # fmt: skip
     except (ConfigError, DatasetError) as err:
@@ -134,7 +139,11 @@ def train(
             learned, true = learned[:1], true[:1]
         shown = ", ".join(f"{a:.4f}/{b:.4f}" for a, b in zip(learned[:8], true[:8]))
         more = f" … ({len(learned)} values)" if len(learned) > 8 else ""
-        typer.echo(f"{key:10s} learned/true: {shown}{more}   max |error| = {item['max_abs_error']:.4f}")
+        err = item["max_abs_error"]
+        hidden = item.get("identifiable", []).count(False)
+        note = f" ({hidden} slots without the contacts that identify it)" if hidden and err is not None else ""
+        shown_err = "not identifiable from the training data" if err is None else f"{err:.4f}{note}"
+        typer.echo(f"{key:10s} learned/true: {shown}{more}   max |error| = {shown_err}")
 
 
 @bench_app.command("near-psd")

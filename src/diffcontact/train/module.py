@@ -14,11 +14,14 @@ from collections import Counter
 import lightning.pytorch as pl
 import torch
 
+from diffcontact.errors import ConfigError
 from diffcontact.models import build_model
 from diffcontact.solver import Status, solve_cone_qp
 from diffcontact.systems.registry import build_task
 
 log = logging.getLogger(__name__)
+
+SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
 
 
 class ContactLightningModule(pl.LightningModule):
@@ -36,8 +39,11 @@ class ContactLightningModule(pl.LightningModule):
         layers: int = 3,
         seed: int = 0,
         dtype: str = "float32",
+        schedule: str = "constant",
     ):
         super().__init__()
+        if schedule not in SCHEDULES:
+            raise ConfigError(f"schedule = {schedule!r} is not one of {list(SCHEDULES)}")
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.task = build_task(task)
@@ -95,6 +101,9 @@ class ContactLightningModule(pl.LightningModule):
         return loss
 
     def on_train_epoch_end(self) -> None:
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"])  # (the rate this epoch used)
+        if self.hparams.schedule != "constant":  # (manual optimisation: the schedule is stepped here)
+            self.lr_schedulers().step()
         p = self.net.params
         self.log_dict({"learned/mu_mean": p.mu.detach().mean(), "learned/e_mean": p.e.detach().mean()}, prog_bar=True)
         self.log_dict(
@@ -113,7 +122,13 @@ class ContactLightningModule(pl.LightningModule):
         return m / m[0]
 
     def configure_optimizers(self):
-        return torch.optim.AdamW(self.net.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        opt = torch.optim.AdamW(self.net.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        epochs = self.trainer.max_epochs if self._trainer is not None and self.trainer.max_epochs else 1
+        if self.hparams.schedule == "constant":
+            return opt
+        # cosine from lr to lr/100 over the run's epochs (stepped at each epoch's end)
+        cosine = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=self.hparams.lr / 100)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": cosine, "interval": "epoch"}}
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["counters"] = {

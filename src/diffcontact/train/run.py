@@ -16,6 +16,7 @@ from diffcontact.errors import ConfigError
 from diffcontact.models import MODEL_NAMES
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.module import ContactLightningModule
+from diffcontact.train.summary import learned_summary
 
 
 def _write_json(path: Path, obj) -> None:
@@ -59,42 +60,23 @@ def plot_losses(csv_dir: Path, out: Path) -> Path | None:
     return out
 
 
-def learned_summary(module: ContactLightningModule) -> dict:
-    """``{"mu", "e", "mass_ratio"[, "moments"]}``, each ``{"learned": [...], "true": [...], "max_abs_error": x}``.
-
-    μ and e per contact slot; mass ratio = mass / mass of the first body, learned and true; moments (extended
-    bodies only): second moments per unit mass in m², body by body and axis by axis."""
-    truth = module.task.params
-    learned = module.net.params
-    m_true = truth.inertia.masses.double()
-    pairs = {
-        "mu": (learned.mu.detach().double(), truth.mu.double()),
-        "e": (learned.e.detach().double(), truth.e.double()),
-        "mass_ratio": (module.mass_ratio().double(), m_true / m_true[0]),
-    }
-    moments = truth.inertia.moments
-    if moments.numel():  # extended bodies: second moments per unit mass, body by body, axis by axis (m²)
-        pairs["moments"] = (learned.inertia.moments.detach().double().flatten(), moments.double().flatten())
-    return {
-        k: {"learned": a.tolist(), "true": b.tolist(), "max_abs_error": float((a - b).abs().max())}
-        for k, (a, b) in pairs.items()
-    }
-
-
 # Optimiser settings by name. "default": what converged on every task measured (docs/results.md: BP5-e, CP3-e,
 # CP3, Gyro-e, Gyro with CM-CD-CLNN); "published": the paper's (spec E), kept for comparison.
 PRESETS = {
-    "default": {"epochs": 200, "lr": 1e-2},
-    "published": {"epochs": 1000, "lr": 1e-3},
+    "default": {"epochs": 200, "lr": 1e-2, "schedule": "cosine"},
+    "published": {"epochs": 1000, "lr": 1e-3, "schedule": "constant"},
 }
 
 
-def resolve_preset(preset: str, epochs: int | None, lr: float | None) -> tuple[int, float]:
-    """(epochs, lr) of ``preset``, each replaced where given explicitly."""
+def resolve_preset(
+    preset: str, epochs: int | None, lr: float | None, schedule: str | None = None
+) -> tuple[int, float, str]:
+    """(epochs, lr, schedule) of ``preset``, each replaced where given explicitly."""
     if preset not in PRESETS:
         raise ConfigError(f"preset = {preset!r} is not one of {list(PRESETS)}")
     chosen = PRESETS[preset]
-    return (chosen["epochs"] if epochs is None else epochs, chosen["lr"] if lr is None else lr)
+    given = {"epochs": epochs, "lr": lr, "schedule": schedule}
+    return tuple(chosen[k] if v is None else v for k, v in given.items())
 
 
 def train_run(
@@ -108,6 +90,7 @@ def train_run(
     data_root: str | Path = "data",
     batch_size: int = 200,
     lr: float | None = None,
+    schedule: str | None = None,
     weight_decay: float = 1e-4,
     mu_transform: str = "relu",
     e_transform: str = "hardsigmoid",
@@ -117,7 +100,8 @@ def train_run(
 ) -> dict:
     """Train ``model`` on the generated dataset of ``task`` into ``out`` (default runs/<task>/<model>/seed<seed>).
 
-    ``preset`` names the optimiser settings (``PRESETS``); ``epochs`` and ``lr`` override it where given.
+    ``preset`` names the optimiser settings (``PRESETS``); ``epochs``, ``lr`` and ``schedule`` override it where
+    given.
 
     The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last, every
     epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  ``resume`` continues
@@ -126,7 +110,7 @@ def train_run(
     """
     if model not in MODEL_NAMES:
         raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES)}")
-    epochs, lr = resolve_preset(preset, epochs, lr)
+    epochs, lr, schedule = resolve_preset(preset, epochs, lr, schedule)
     if epochs < 1:
         raise ConfigError(f"epochs = {epochs} is not >= 1")
     run = Path(out) if out else Path("runs") / task / model / f"seed{seed}"
@@ -143,6 +127,7 @@ def train_run(
         seed=seed,
         batch_size=batch_size,
         lr=lr,
+        schedule=schedule,
         weight_decay=weight_decay,
         mu_transform=mu_transform,
         e_transform=e_transform,
@@ -169,6 +154,7 @@ def train_run(
         e_transform=e_transform,
         seed=seed,
         dtype=dtype,
+        schedule=schedule,
     )
     loggers = [pl.loggers.CSVLogger(run / "logs", name="csv"), pl.loggers.TensorBoardLogger(run / "logs", name="tb")]
     checkpoints = pl.callbacks.ModelCheckpoint(
@@ -192,7 +178,8 @@ def train_run(
     trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume else None)
     best = checkpoints.best_model_path
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
-    summary = learned_summary(chosen)  # the parameters of the checkpoint chosen on the validation split
+    # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
+    summary = learned_summary(chosen.net, chosen.task, data.splits["train"].chunk_x)
     summary["best_checkpoint"] = best
     summary["epochs_trained"] = int(trainer.current_epoch)
     summary["skipped_steps"] = module.skipped_steps
