@@ -104,3 +104,27 @@ def test_slots_without_contacts_and_frictionless_limits_are_not_identifiable(dat
     x = 1.5 * rope.sample(8, seed=0).x  # (every link stretched by 1.5, beyond its limit 1.2: all in contact)
     collisions, frictional = slot_contacts(rope.system, torch.stack([x, x], 1), rope.params.mu.numel())
     assert collisions.sum() >= 8 * 10 and frictional.sum() == 0
+
+
+def test_inertia_is_compared_up_to_the_scale_a_learned_potential_absorbs():
+    """Closed forms: the gyroscope's per-axis second moments J are identified only up to J → s(J + r²) − r² (its
+    principal moments about the joint, r = the centre's offset 0.5 m along e3); a disk's two second moments only
+    through their sum; any other change shows as the ratio it makes."""
+    from diffcontact import build_task
+    from diffcontact.state import Inertia
+    from diffcontact.train.summary import inertia_spread
+
+    gyro = build_task("Gyro")
+    x, true = gyro.sample(8, seed=0).x, gyro.params.inertia
+    r2 = torch.tensor([0.0, 0.0, 0.25], dtype=torch.float64)
+    same = Inertia(7 * true.masses, 3.075 * (true.moments + r2) - r2)
+    assert inertia_spread(gyro.system, same, true, x)["spread"] < 1e-7
+    wider = Inertia(true.masses, true.moments * torch.tensor([1.25, 1.0, 1.0], dtype=torch.float64))
+    assert inertia_spread(gyro.system, wider, true, x)["spread"] == pytest.approx(0.125, rel=1e-6)  # I_3: 0.54/0.48
+    disks = build_task("BD5")
+    x, true = disks.sample(8, seed=0).x, disks.params.inertia
+    split = true.moments + torch.tensor([1e-3, -1e-3], dtype=torch.float64)
+    assert inertia_spread(disks.system, Inertia(2 * true.masses, split), true, x)["spread"] < 1e-9
+    heavier = true.moments.clone()
+    heavier[0] *= 1.1
+    assert inertia_spread(disks.system, Inertia(true.masses, heavier), true, x)["spread"] == pytest.approx(0.1)

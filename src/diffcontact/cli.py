@@ -144,6 +144,8 @@ def train(
         note = f" ({hidden} slots without the contacts that identify it)" if hidden and err is not None else ""
         shown_err = "not identifiable from the training data" if err is None else f"{err:.4f}{note}"
         typer.echo(f"{key:10s} learned/true: {shown}{more}   max |error| = {shown_err}")
+    spread = summary["inertia"]["spread"]
+    typer.echo(f"inertia    on the motions the constraints allow, up to the potential's scale: within {spread:.2%}")
 
 
 @bench_app.command("near-psd")

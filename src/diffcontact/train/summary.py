@@ -3,12 +3,22 @@
 A contact slot's e is identifiable only if the training chunks have contacts of that slot, and its μ only if some of
 those contacts have a tangential direction (the rope's bend and stretch limits are one-dimensional: μ acts on
 nothing).  Errors are taken over the identifiable slots; the others are reported as such, not as errors.
+
+Inertia: with a learned potential the dynamics are unchanged when the kinetic and the potential energy are scaled
+together, and only motions that obey the constraints carry kinetic energy.  So what the data identifies is the
+mass matrix restricted to the constraints' tangent space, up to one factor: ``inertia_spread`` compares exactly
+that.  Mass ratios follow from it where bodies move freely; single moments do not: a 2-D body's kinetic energy of
+rotation holds only the sum of its two second moments, and the gyroscope on its joint holds only the ratios of
+its principal moments about the joint (its per-axis second moments about the centre of mass are known up to
+J → s·(J + r²) − r², r the joint-to-centre offset).
 """
 
 from __future__ import annotations
 
 import torch
 
+from diffcontact.dynamics.inertia import body_blocks, dense
+from diffcontact.state import Inertia
 from diffcontact.systems.base import System
 
 
@@ -32,6 +42,33 @@ def slot_contacts(system: System, chunk_x: torch.Tensor, n_slots: int) -> tuple[
     return collisions, frictional
 
 
+def inertia_spread(system: System, learned: Inertia, true: Inertia, x: torch.Tensor) -> dict:
+    """The learned against the true mass matrix on the constraints' tangent space, up to a common factor.
+
+    At each configuration x (B, P, d) (m), with T a basis of the velocities the constraints allow, the generalised
+    eigenvalues λ of (Tᵀ M_learned T, Tᵀ M_true T) are the ratios learned/true of the kinetic energy of the
+    principal motions; a model equal to the truth up to the scale its potential absorbs has all λ equal.
+    Returns {"spread": max over x of λ_max/λ_min − 1, "scale": the median λ}.
+    """
+    d = system.d
+    M_l = dense(body_blocks(Inertia(learned.masses.detach().double(), learned.moments.detach().double()))[0], d)
+    M_t = dense(body_blocks(Inertia(true.masses.double(), true.moments.double()))[0], d)
+    x = x.to(torch.float64)
+    Je = system.constraints.jac(x)  # (B, E, D)
+    D = M_t.shape[-1]
+    if Je.shape[1]:
+        _, sv, Vh = torch.linalg.svd(Je)  # (the null space: right singular vectors beyond the rank)
+        rank = int((sv > 1e-9 * sv[:, :1]).sum(-1).max())
+        T = Vh[:, rank:].mT  # (B, D, D − rank)
+    else:
+        T = torch.eye(D, dtype=torch.float64).expand(x.shape[0], D, D)
+    Mt, Ml = T.mT @ M_t @ T, T.mT @ M_l @ T
+    L = torch.linalg.cholesky(Mt)
+    W = torch.linalg.solve_triangular(L, torch.linalg.solve_triangular(L, Ml, upper=False).mT, upper=False)
+    lam = torch.linalg.eigvalsh(0.5 * (W + W.mT))  # (B, n)
+    return {"spread": float((lam[:, -1] / lam[:, 0]).max() - 1), "scale": float(lam.median())}
+
+
 def compare(learned: torch.Tensor, true: torch.Tensor, identifiable: torch.Tensor | None = None) -> dict:
     """``{"learned", "true", "max_abs_error"[, "identifiable"]}``: the error over the identifiable entries (None
     where there is none)."""
@@ -45,12 +82,13 @@ def compare(learned: torch.Tensor, true: torch.Tensor, identifiable: torch.Tenso
 
 
 def learned_summary(net, task, chunk_x: torch.Tensor) -> dict:
-    """``{"mu", "e", "mass_ratio"[, "moments"], "collisions", "collisions_with_friction"}`` of a model ``net``
-    (its ``params``: LearnedParams) trained on ``task``'s chunks ``chunk_x`` (N, L, P, d).
+    """``{"mu", "e", "mass_ratio"[, "moments"], "inertia", "collisions", "collisions_with_friction"}`` of a model
+    ``net`` (its ``params``: LearnedParams) trained on ``task``'s chunks ``chunk_x`` (N, L, P, d).
 
     μ and e per contact slot, with the slots the data can identify (homogeneous tasks share one value, identifiable
     if any slot is); mass ratio = mass / mass of the first body; moments (extended bodies only): second moments per
-    unit mass in m², body by body and axis by axis.
+    unit mass in m², body by body and axis by axis (see the module docstring for what of them is identifiable);
+    inertia: ``inertia_spread``, what is.
     """
     truth, learned = task.params, net.params
     n_slots = truth.mu.numel()
@@ -69,6 +107,8 @@ def learned_summary(net, task, chunk_x: torch.Tensor) -> dict:
     moments = truth.inertia.moments
     if moments.numel():
         out["moments"] = compare(learned.inertia.moments.detach().double().flatten(), moments.double().flatten())
+    # (at the first frames of up to 64 chunks)
+    out["inertia"] = inertia_spread(task.system, learned.inertia, truth.inertia, chunk_x[:64, 0].detach())
     out["collisions"] = collisions.tolist()
     out["collisions_with_friction"] = frictional.tolist()
     return out
