@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import torch
 
 from diffcontact.contact.detect import ContactSet
-from diffcontact.contact.effective_mass import constrained_inverse_inertia_times, contact_inverse_inertia
+from diffcontact.contact.effective_mass import effective_inverse_inertia
 from diffcontact.dynamics.constraints import Constraints
-from diffcontact.dynamics.inertia import body_blocks
+from diffcontact.dynamics.inertia import inverse_factor_blocks
 from diffcontact.state import Params
 
 
@@ -56,10 +56,8 @@ class ContactModel:
         idx, dc = contacts.index, contacts.dc
         xs, vs = x[idx], v[idx]
         Bp, P, d = xs.shape
-        _, Minv = body_blocks(params.inertia)
         Jc = contacts.J.to(x)
-        MhJt = constrained_inverse_inertia_times(Minv, constraints, xs, Jc)  # (B', D, C)
-        A = contact_inverse_inertia(Jc, MhJt)
+        MhJt, A = effective_inverse_inertia(inverse_factor_blocks(params.inertia), constraints, xs, Jc)
         A_qp = A + self.reg * torch.eye(A.shape[-1], dtype=A.dtype) if self.reg > 0 else A
         mu = torch.where(contacts.frictionless, torch.zeros((), dtype=x.dtype), params.mu.to(x)[contacts.slot])
         e = params.e.to(x)[contacts.slot]

@@ -28,6 +28,17 @@ def body_blocks(inertia: Inertia) -> tuple[torch.Tensor, torch.Tensor]:
     return M, Minv
 
 
+def inverse_factor_blocks(inertia: Inertia) -> torch.Tensor:
+    """Blocks L (n_bodies, k+1, k+1) with L Lᵀ = the M⁻¹ blocks of :func:`body_blocks`, in closed form:
+    L = m^(−1/2) [1 | diag(0, μ^(−1/2))] (first column all ones), exact for any moments (no factorisation)."""
+    m, mom = inertia.masses, inertia.moments
+    k = mom.shape[-1]
+    ones = torch.ones(m.shape[0], k + 1, 1, dtype=m.dtype, device=m.device)
+    zero = torch.zeros(m.shape[0], 1, dtype=m.dtype, device=m.device)
+    spread = torch.diag_embed(torch.cat([zero, mom.rsqrt()], dim=-1))[..., 1:]
+    return torch.cat([ones, spread], dim=-1) * m.rsqrt()[:, None, None]
+
+
 def apply_blocks(blocks: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Multiply points by the per-body blocks: blocks (n, k+1, k+1), y (B, P, d, ...) -> same shape as y.
 
