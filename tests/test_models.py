@@ -78,3 +78,31 @@ def test_tiny_run_recovers_restitution_and_friction_of_one_ball():
         opt.step()
     assert abs(model.params.e[0].item() - 0.8) < TOL_RECOVERED
     assert abs(model.params.mu[0].item() - 0.2) < TOL_RECOVERED
+
+
+def test_projected_coefficients_come_back_from_their_bounds():
+    """A coefficient on its bound (e = 0, true 0.1) returns with the projected parametrisation; hardsigmoid's
+    gradient there is zero and it stays (BD5: a slot with 34 collisions ended at e = 0, true 0.1)."""
+    from diffcontact.models.params import LearnedParams
+
+    def fit(e_transform, raw):
+        p = LearnedParams(1, 0, 1, 2, 1, homogeneous=True, e_transform=e_transform, hidden=4, layers=1)
+        with torch.no_grad():
+            p.e_raw.fill_(raw)
+        opt = torch.optim.Adam(p.parameters(), lr=1e-2)
+        for _ in range(50):
+            loss = ((p.e - 0.1) ** 2).sum()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            p.project_()
+        return p.e.item()
+
+    assert abs(fit("projected", 0.0) - 0.1) < 0.02
+    assert fit("hardsigmoid", -3.5) == 0.0
+    p = LearnedParams(1, 0, 1, 2, 1, homogeneous=True)
+    with torch.no_grad():
+        p.mu_raw.fill_(-0.3)
+        p.e_raw.fill_(1.4)
+    p.project_()
+    assert p.mu.item() == 0.0 and p.e.item() == 1.0

@@ -67,10 +67,15 @@ def test_bad_arguments_are_clear_errors(data_root, tmp_path):
 
 
 def test_presets_give_the_optimiser_settings_and_explicit_values_win():
-    assert resolve_preset("default", None, None) == (200, 1e-2, "cosine")
-    assert resolve_preset("published", None, None) == (1000, 1e-3, "constant")
-    assert resolve_preset("published", 5, None) == (5, 1e-3, "constant")
-    assert resolve_preset("default", None, 3e-3, "constant") == (200, 3e-3, "constant")
+    default = resolve_preset("default")
+    assert (default["epochs"], default["lr"], default["schedule"], default["batch_size"]) == (200, 1e-2, "cosine", 50)
+    assert default["mu_transform"] == default["e_transform"] == "projected"
+    published = resolve_preset("published", epochs=5)
+    assert (published["epochs"], published["lr"], published["batch_size"]) == (5, 1e-3, 200)
+    assert (published["mu_transform"], published["e_transform"]) == ("relu", "hardsigmoid")
+    assert resolve_preset("default", lr=3e-3, schedule="constant", batch_size=None)["lr"] == 3e-3
+    with pytest.raises(ConfigError, match="unknown settings"):
+        resolve_preset("default", momentum=0.9)
 
 
 def _summary(task: str, chunk_x=None):

@@ -101,18 +101,19 @@ def train(
     preset: str = typer.Option(
         "default",
         "--preset",
-        help="Optimiser settings: default (200 epochs, lr 1e-2 cosine-annealed) or published (1000, 1e-3 constant).",
+        help="Training settings: default (200 epochs, batch 50, lr 1e-2 cosine-annealed, projected μ and e) or "
+        "published (1000 epochs, batch 200, lr 1e-3 constant, ReLU μ, hardsigmoid e).",
     ),
     epochs: int = typer.Option(None, "--epochs", help="Epochs (default: the preset's)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the initial parameters and the batch order."),
     out: str = typer.Option("", "--out", help="Run directory (default runs/TASK/MODEL/seedS)."),
     data: str = typer.Option("data", "--data", help="Dataset root (as given to diffcontact generate --out)."),
-    batch_size: int = typer.Option(200, "--batch-size", help="Chunks per batch."),
+    batch_size: int = typer.Option(None, "--batch-size", help="Chunks per batch (default: the preset's)."),
     lr: float = typer.Option(None, "--lr", help="AdamW learning rate (default: the preset's)."),
     schedule: str = typer.Option(
         None, "--schedule", help="Learning rate over the epochs: constant or cosine (to lr/100; default: the preset's)."
     ),
-    smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of ReLU / hardsigmoid."),
+    smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of the preset's."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the run's last checkpoint."),
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
@@ -123,8 +124,8 @@ def train(
     try:
         summary = train_run(
             task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
-            batch_size=batch_size, lr=lr, schedule=schedule, mu_transform="softplus" if smooth else "relu",
-            e_transform="sigmoid" if smooth else "hardsigmoid", resume=resume, progress=progress,
+            batch_size=batch_size, lr=lr, schedule=schedule, mu_transform="softplus" if smooth else None,
+            e_transform="sigmoid" if smooth else None, resume=resume, progress=progress,
         )  # fmt: skip
     except (ConfigError, DatasetError) as err:
         typer.echo(f"{type(err).__name__}: {err}", err=True)

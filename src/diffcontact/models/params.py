@@ -3,8 +3,11 @@
 Structure stays known (bodies, constraints, contact geometry); the values are learned:
 - inertia: masses and per-axis moments per unit mass through exp (positive by construction), 0.1·N(0, 1) init;
 - potential: an MLP over all positions (3 hidden layers of 256, Softplus, orthogonal weights), as published;
-- μ = ReLU(raw) (raw ~ U[0, 1)) and e = hardsigmoid(raw) (raw ~ N(0, 1)), as published, or the smooth
-  alternatives softplus / sigmoid, which never stop the gradient; one pair for homogeneous tasks (a single
+- μ and e "projected" (the default): the parameter is the value itself, kept in μ ≥ 0 and e ∈ [0, 1] by clamping
+  after every optimiser step (``project_``), so that a value on its bound still gets the gradient that brings it
+  back (ReLU and hardsigmoid have none there: measured on BD5, a slot whose e reached 0 stayed there, true 0.1);
+  initialised like the published ones (μ ~ U[0, 1), e = hardsigmoid(N(0, 1))).  Or μ = ReLU(raw) and
+  e = hardsigmoid(raw), as published, or the smooth softplus / sigmoid.  One pair for homogeneous tasks (a single
   configured value), one per contact slot otherwise.
 """
 
@@ -16,8 +19,13 @@ from torch import nn
 from diffcontact.errors import ConfigError
 from diffcontact.state import Inertia, Params
 
-MU_TRANSFORMS = {"relu": torch.relu, "softplus": nn.functional.softplus}
-E_TRANSFORMS = {"hardsigmoid": nn.functional.hardsigmoid, "sigmoid": torch.sigmoid}
+
+def _identity(x: torch.Tensor) -> torch.Tensor:
+    return x
+
+
+MU_TRANSFORMS = {"projected": _identity, "relu": torch.relu, "softplus": nn.functional.softplus}
+E_TRANSFORMS = {"projected": _identity, "hardsigmoid": nn.functional.hardsigmoid, "sigmoid": torch.sigmoid}
 
 
 class MLPPotential(nn.Module):
@@ -57,8 +65,8 @@ class LearnedParams(nn.Module):
         n_slots: int,
         *,
         homogeneous: bool,
-        mu_transform: str = "relu",
-        e_transform: str = "hardsigmoid",
+        mu_transform: str = "projected",
+        e_transform: str = "projected",
         hidden: int = 256,
         layers: int = 3,
         seed: int = 0,
@@ -76,8 +84,17 @@ class LearnedParams(nn.Module):
         self.log_mass = nn.Parameter(0.1 * torch.randn(n_bodies, generator=gen, dtype=dtype))
         self.log_moments = nn.Parameter(0.1 * torch.randn(n_bodies, n_moments, generator=gen, dtype=dtype))
         self.mu_raw = nn.Parameter(torch.rand(n_coef, generator=gen, dtype=dtype))
-        self.e_raw = nn.Parameter(torch.randn(n_coef, generator=gen, dtype=dtype))
+        e_raw = torch.randn(n_coef, generator=gen, dtype=dtype)
+        self.e_raw = nn.Parameter(nn.functional.hardsigmoid(e_raw) if e_transform == "projected" else e_raw)
         self.potential = MLPPotential(n_points * d, hidden, layers, generator=gen).to(dtype)
+
+    @torch.no_grad()
+    def project_(self) -> None:
+        """Clamp projected coefficients into their domain (after an optimiser step; no-op for the transforms)."""
+        if self.mu_transform == "projected":
+            self.mu_raw.clamp_(min=0.0)
+        if self.e_transform == "projected":
+            self.e_raw.clamp_(0.0, 1.0)
 
     @property
     def mu(self) -> torch.Tensor:

@@ -33,8 +33,8 @@ class ContactLightningModule(pl.LightningModule):
         model: str = "CM-CD-CLNN",
         lr: float = 1e-3,
         weight_decay: float = 1e-4,
-        mu_transform: str = "relu",
-        e_transform: str = "hardsigmoid",
+        mu_transform: str = "projected",
+        e_transform: str = "projected",
         hidden: int = 256,
         layers: int = 3,
         seed: int = 0,
@@ -89,6 +89,7 @@ class ContactLightningModule(pl.LightningModule):
         grads = [p.grad for p in self.net.parameters() if p.grad is not None]
         if all(bool(torch.isfinite(g).all()) for g in grads) and bool(torch.isfinite(loss)):
             opt.step()
+            self.net.params.project_()
         else:  # skipped entirely: no update, no weight decay
             self.skipped_steps += 1
             opt.zero_grad()

@@ -60,23 +60,26 @@ def plot_losses(csv_dir: Path, out: Path) -> Path | None:
     return out
 
 
-# Optimiser settings by name. "default": what converged on every task measured (docs/results.md: BP5-e, CP3-e,
-# CP3, Gyro-e, Gyro with CM-CD-CLNN); "published": the paper's (spec E), kept for comparison.
+# Training settings by name.  "default": what learns on every task measured (docs/results.md, the learning
+# matrix); "published": the paper's (spec E), kept for comparison.
 PRESETS = {
-    "default": {"epochs": 200, "lr": 1e-2, "schedule": "cosine"},
-    "published": {"epochs": 1000, "lr": 1e-3, "schedule": "constant"},
+    "default": dict(
+        epochs=200, lr=1e-2, schedule="cosine", batch_size=50, mu_transform="projected", e_transform="projected"
+    ),
+    "published": dict(
+        epochs=1000, lr=1e-3, schedule="constant", batch_size=200, mu_transform="relu", e_transform="hardsigmoid"
+    ),
 }
 
 
-def resolve_preset(
-    preset: str, epochs: int | None, lr: float | None, schedule: str | None = None
-) -> tuple[int, float, str]:
-    """(epochs, lr, schedule) of ``preset``, each replaced where given explicitly."""
+def resolve_preset(preset: str, **given) -> dict:
+    """The settings of ``preset`` (``PRESETS``), each replaced where given (not None)."""
     if preset not in PRESETS:
         raise ConfigError(f"preset = {preset!r} is not one of {list(PRESETS)}")
-    chosen = PRESETS[preset]
-    given = {"epochs": epochs, "lr": lr, "schedule": schedule}
-    return tuple(chosen[k] if v is None else v for k, v in given.items())
+    unknown = set(given) - set(PRESETS[preset])
+    if unknown:
+        raise ConfigError(f"unknown settings {sorted(unknown)}; known: {list(PRESETS[preset])}")
+    return {k: v if given.get(k) is None else given[k] for k, v in PRESETS[preset].items()}
 
 
 def train_run(
@@ -88,20 +91,20 @@ def train_run(
     seed: int = 0,
     out: str | Path | None = None,
     data_root: str | Path = "data",
-    batch_size: int = 200,
+    batch_size: int | None = None,
     lr: float | None = None,
     schedule: str | None = None,
     weight_decay: float = 1e-4,
-    mu_transform: str = "relu",
-    e_transform: str = "hardsigmoid",
+    mu_transform: str | None = None,
+    e_transform: str | None = None,
     dtype: str = "float32",
     resume: bool = False,
     progress: bool = True,
 ) -> dict:
     """Train ``model`` on the generated dataset of ``task`` into ``out`` (default runs/<task>/<model>/seed<seed>).
 
-    ``preset`` names the optimiser settings (``PRESETS``); ``epochs``, ``lr`` and ``schedule`` override it where
-    given.
+    ``preset`` names the training settings (``PRESETS``); ``epochs``, ``lr``, ``schedule``, ``batch_size`` and the
+    transforms override it where given.
 
     The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last, every
     epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  ``resume`` continues
@@ -110,7 +113,17 @@ def train_run(
     """
     if model not in MODEL_NAMES:
         raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES)}")
-    epochs, lr, schedule = resolve_preset(preset, epochs, lr, schedule)
+    settings = resolve_preset(
+        preset,
+        epochs=epochs,
+        lr=lr,
+        schedule=schedule,
+        batch_size=batch_size,
+        mu_transform=mu_transform,
+        e_transform=e_transform,
+    )
+    epochs, lr, schedule, batch_size = (settings[k] for k in ("epochs", "lr", "schedule", "batch_size"))
+    mu_transform, e_transform = settings["mu_transform"], settings["e_transform"]
     if epochs < 1:
         raise ConfigError(f"epochs = {epochs} is not >= 1")
     run = Path(out) if out else Path("runs") / task / model / f"seed{seed}"
