@@ -75,7 +75,7 @@ def collate(out: Path) -> str:
         best = Path(s["best_checkpoint"]).stem.split("=")[-1] if s.get("best_checkpoint") else "?"
         rows.append(
             f"| {task} | {model} | {seed} | {fmt(s['mu']['max_abs_error'])} | {fmt(s['e']['max_abs_error'])} "
-            f"| {per_slot} | {rel:.2%} | {s['inertia']['spread']:.2%} | {s['solver_failures']} "
+            f"| {per_slot} | {rel:.3%} | {s['inertia']['spread']:.3%} | {s['solver_failures']} "
             f"| {s['skipped_steps']} | {best} | {s['wall_time_s']:.0f} s |"
         )
     return "\n".join(rows)

@@ -69,6 +69,7 @@ def test_bad_arguments_are_clear_errors(data_root, tmp_path):
 def test_presets_give_the_optimiser_settings_and_explicit_values_win():
     default = resolve_preset("default")
     assert (default["epochs"], default["lr"], default["schedule"], default["batch_size"]) == (200, 1e-2, "cosine", 50)
+    assert default["coef_lr"] == pytest.approx(1 / 6)
     assert default["mu_transform"] == default["e_transform"] == "projected"
     published = resolve_preset("published", epochs=5)
     assert (published["epochs"], published["lr"], published["batch_size"]) == (5, 1e-3, 200)

@@ -113,6 +113,9 @@ def train(
     schedule: str = typer.Option(
         None, "--schedule", help="Learning rate over the epochs: constant or cosine (to lr/100; default: the preset's)."
     ),
+    coef_lr: float = typer.Option(
+        None, "--coef-lr", help="Learning rate of μ and e relative to the others (default: the preset's)."
+    ),
     smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of the preset's."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the run's last checkpoint."),
     progress: bool = typer.Option(True, help="Show a progress bar."),
@@ -124,8 +127,9 @@ def train(
     try:
         summary = train_run(
             task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
-            batch_size=batch_size, lr=lr, schedule=schedule, mu_transform="softplus" if smooth else None,
-            e_transform="sigmoid" if smooth else None, resume=resume, progress=progress,
+            batch_size=batch_size, lr=lr, schedule=schedule, coef_lr=coef_lr,
+            mu_transform="softplus" if smooth else None, e_transform="sigmoid" if smooth else None, resume=resume,
+            progress=progress,
         )  # fmt: skip
     except (ConfigError, DatasetError) as err:
         typer.echo(f"{type(err).__name__}: {err}", err=True)

@@ -6,7 +6,7 @@ Structure stays known (bodies, constraints, contact geometry); the values are le
 - μ and e "projected" (the default): the parameter is the value itself, kept in μ ≥ 0 and e ∈ [0, 1] by clamping
   after every optimiser step (``project_``), so that a value on its bound still gets the gradient that brings it
   back (ReLU and hardsigmoid have none there: measured on BD5, a slot whose e reached 0 stayed there, true 0.1);
-  initialised like the published ones (μ ~ U[0, 1), e = hardsigmoid(N(0, 1))).  Or μ = ReLU(raw) and
+  initialised μ ~ U[0, 1) like the published ones, e = 0.2 + 0.6·sigmoid(N(0, 1)), inside (0, 1).  Or μ = ReLU(raw) and
   e = hardsigmoid(raw), as published, or the smooth softplus / sigmoid.  One pair for homogeneous tasks (a single
   configured value), one per contact slot otherwise.
 """
@@ -85,7 +85,8 @@ class LearnedParams(nn.Module):
         self.log_moments = nn.Parameter(0.1 * torch.randn(n_bodies, n_moments, generator=gen, dtype=dtype))
         self.mu_raw = nn.Parameter(torch.rand(n_coef, generator=gen, dtype=dtype))
         e_raw = torch.randn(n_coef, generator=gen, dtype=dtype)
-        self.e_raw = nn.Parameter(nn.functional.hardsigmoid(e_raw) if e_transform == "projected" else e_raw)
+        # (projected: in [0.2, 0.8], away from the bounds, where hardsigmoid(N(0, 1)) starts 0.3 % of the slots at 0)
+        self.e_raw = nn.Parameter(0.2 + 0.6 * torch.sigmoid(e_raw) if e_transform == "projected" else e_raw)
         self.potential = MLPPotential(n_points * d, hidden, layers, generator=gen).to(dtype)
 
     @torch.no_grad()

@@ -40,6 +40,7 @@ class ContactLightningModule(pl.LightningModule):
         seed: int = 0,
         dtype: str = "float32",
         schedule: str = "constant",
+        coef_lr: float = 1.0,
     ):
         super().__init__()
         if schedule not in SCHEDULES:
@@ -123,7 +124,14 @@ class ContactLightningModule(pl.LightningModule):
         return m / m[0]
 
     def configure_optimizers(self):
-        opt = torch.optim.AdamW(self.net.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        # μ and e at coef_lr × lr: Adam moves a parameter about lr per step, whatever its gradient's size
+        p = self.net.params
+        coefs = {id(p.mu_raw), id(p.e_raw)}
+        groups = [
+            {"params": [t for t in self.net.parameters() if id(t) not in coefs]},
+            {"params": [p.mu_raw, p.e_raw], "lr": self.hparams.lr * self.hparams.coef_lr},
+        ]
+        opt = torch.optim.AdamW(groups, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
         epochs = self.trainer.max_epochs if self._trainer is not None and self.trainer.max_epochs else 1
         if self.hparams.schedule == "constant":
             return opt

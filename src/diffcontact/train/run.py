@@ -64,10 +64,22 @@ def plot_losses(csv_dir: Path, out: Path) -> Path | None:
 # matrix); "published": the paper's (spec E), kept for comparison.
 PRESETS = {
     "default": dict(
-        epochs=200, lr=1e-2, schedule="cosine", batch_size=50, mu_transform="projected", e_transform="projected"
+        epochs=200,
+        lr=1e-2,
+        schedule="cosine",
+        batch_size=50,
+        mu_transform="projected",
+        e_transform="projected",
+        coef_lr=1 / 6,
     ),
     "published": dict(
-        epochs=1000, lr=1e-3, schedule="constant", batch_size=200, mu_transform="relu", e_transform="hardsigmoid"
+        epochs=1000,
+        lr=1e-3,
+        schedule="constant",
+        batch_size=200,
+        mu_transform="relu",
+        e_transform="hardsigmoid",
+        coef_lr=1.0,
     ),
 }
 
@@ -97,6 +109,7 @@ def train_run(
     weight_decay: float = 1e-4,
     mu_transform: str | None = None,
     e_transform: str | None = None,
+    coef_lr: float | None = None,
     dtype: str = "float32",
     resume: bool = False,
     progress: bool = True,
@@ -121,7 +134,9 @@ def train_run(
         batch_size=batch_size,
         mu_transform=mu_transform,
         e_transform=e_transform,
+        coef_lr=coef_lr,
     )
+    coef_lr = settings["coef_lr"]
     epochs, lr, schedule, batch_size = (settings[k] for k in ("epochs", "lr", "schedule", "batch_size"))
     mu_transform, e_transform = settings["mu_transform"], settings["e_transform"]
     if epochs < 1:
@@ -141,6 +156,7 @@ def train_run(
         batch_size=batch_size,
         lr=lr,
         schedule=schedule,
+        coef_lr=coef_lr,
         weight_decay=weight_decay,
         mu_transform=mu_transform,
         e_transform=e_transform,
@@ -168,6 +184,7 @@ def train_run(
         seed=seed,
         dtype=dtype,
         schedule=schedule,
+        coef_lr=coef_lr,
     )
     loggers = [pl.loggers.CSVLogger(run / "logs", name="csv"), pl.loggers.TensorBoardLogger(run / "logs", name="tb")]
     checkpoints = pl.callbacks.ModelCheckpoint(
