@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import typer
 
 app = typer.Typer(
@@ -151,6 +153,20 @@ def train(
         typer.echo(f"{key:10s} learned/true: {shown}{more}   max |error| = {shown_err}")
     spread = summary["inertia"]["spread"]
     typer.echo(f"inertia    on the motions the constraints allow, up to the potential's scale: within {spread:.2%}")
+
+
+@app.command("summarize")
+def summarize(run: str = typer.Argument(..., help="Run directory of a finished `diffcontact train`.")) -> None:
+    """Recompute a run's learned.json (learned against true, what the data identify) from its best checkpoint."""
+    from diffcontact.errors import ConfigError, DatasetError
+    from diffcontact.train.run import summarize_run
+
+    try:
+        summary = summarize_run(run)
+    except (ConfigError, DatasetError) as err:
+        typer.echo(f"{type(err).__name__}: {err}", err=True)
+        raise typer.Exit(2) from err
+    typer.echo(json.dumps({k: summary[k]["max_abs_error"] for k in ("mu", "e", "mass_ratio")}))
 
 
 @bench_app.command("near-psd")

@@ -30,6 +30,24 @@ def _default_solver():
 
 
 @dataclass(frozen=True)
+class Phases:
+    """One contact event's problems and impulses, per colliding element (B') and contact (K_c, d_c rows each).
+
+    A: (B', C, C) contact-space inverse inertia; v_before: (B', C) contact velocity before; f_c, f_r: (B', C)
+    impulses of compression and restitution; mu: (B', K_c) friction used; lower: (B', K_c) restitution bound
+    e·f_c,n; MhJt: (B', D, C) M̂⁻¹J_Cᵀ (velocity change per impulse).
+    """
+
+    A: torch.Tensor
+    v_before: torch.Tensor
+    f_c: torch.Tensor
+    f_r: torch.Tensor
+    mu: torch.Tensor
+    lower: torch.Tensor
+    MhJt: torch.Tensor
+
+
+@dataclass(frozen=True)
 class ContactModel:
     """CM (``reg = 0``) or CMr (``reg > 0``), with penetration compensation ``compensation`` × depth/dt.
 
@@ -52,10 +70,24 @@ class ContactModel:
         dt: float,
     ) -> torch.Tensor:
         """Velocity jumps Δv (B', P, d) of the colliding elements ``contacts.index`` (x, v: (B, P, d))."""
+        phases = self.phases(constraints, params, x, v, contacts, dt)
+        Bp, P, d = x[contacts.index].shape
+        return (phases.MhJt @ (phases.f_c + phases.f_r)[..., None]).reshape(Bp, P, d)
+
+    def phases(
+        self,
+        constraints: Constraints,
+        params: Params,
+        x: torch.Tensor,
+        v: torch.Tensor,
+        contacts: ContactSet,
+        dt: float,
+    ) -> Phases:
+        """Both phases' problems and impulses for the colliding elements (see :class:`Phases`)."""
         solve = self.solver or _default_solver()
         idx, dc = contacts.index, contacts.dc
         xs, vs = x[idx], v[idx]
-        Bp, P, d = xs.shape
+        Bp = xs.shape[0]
         Jc = contacts.J.to(x)
         MhJt, A = effective_inverse_inertia(inverse_factor_blocks(params.inertia), constraints, xs, Jc)
         A_qp = A + self.reg * torch.eye(A.shape[-1], dtype=A.dtype) if self.reg > 0 else A
@@ -69,7 +101,7 @@ class ContactModel:
         # a separating contact's compression impulse is zero up to rounding (±1e-16): the bound must stay ≥ 0
         lower = lower.clamp_min(0.0)
         f_r = solve(A_qp, vC_c - v_target, mu, lower, contacts.active, on_failure=self.on_failure)
-        return (MhJt @ (f_c + f_r)[..., None]).reshape(Bp, P, d)
+        return Phases(A=A, v_before=vC, f_c=f_c, f_r=f_r, mu=mu, lower=lower, MhJt=MhJt)
 
     @torch.no_grad()
     def target_velocity(

@@ -209,7 +209,8 @@ def train_run(
     best = checkpoints.best_model_path
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
     # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
-    summary = learned_summary(chosen.net, chosen.task, data.splits["train"].chunk_x)
+    train = data.splits["train"]
+    summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
     summary["best_checkpoint"] = best
     summary["epochs_trained"] = int(trainer.current_epoch)
     summary["skipped_steps"] = module.skipped_steps
@@ -219,4 +220,24 @@ def train_run(
     summary["run_dir"] = str(run)
     _write_json(run / "learned.json", summary)
     plot_losses(run / "logs" / "csv", run / "loss.png")
+    return summary
+
+
+def summarize_run(run: str | Path) -> dict:
+    """Recompute the learned-against-true part of ``run``/learned.json from its best checkpoint and training data
+    (after an upgrade of the summary); the run's counters and times are kept.  Returns the new summary."""
+    from diffcontact.data.store import load_split
+
+    run = Path(run)
+    try:
+        old = json.loads((run / "learned.json").read_text())
+        args = json.loads((run / "config.json").read_text())["args"]
+    except (OSError, ValueError, KeyError) as err:
+        raise ConfigError(f"{run} is not a finished training run (learned.json, config.json): {err}") from err
+    chosen = ContactLightningModule.load_from_checkpoint(old["best_checkpoint"], map_location="cpu")
+    train = load_split(Path(args["data_root"]) / args["task"], "train")
+    fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
+    kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
+    summary = {**fresh, **kept}
+    _write_json(run / "learned.json", summary)
     return summary

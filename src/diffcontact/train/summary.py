@@ -1,8 +1,10 @@
 """What a training run learned, against the truth, with what the data can tell (``learned.json``).
 
-A contact slot's e is identifiable only if the training chunks have contacts of that slot, and its μ only if some of
-those contacts have a tangential direction (the rope's bend and stretch limits are one-dimensional: μ acts on
-nothing).  Errors are taken over the identifiable slots; the others are reported as such, not as errors.
+A contact slot's μ is identifiable only from collisions in which the contact slides (a sticking contact only
+bounds μ from below; the rope's one-dimensional limits have no tangent at all), and its e only from collisions
+whose restitution impulse the bound e·f_c,n sets (where the impulse toward the target velocity of the penetration
+compensation exceeds it, any smaller e gives the same motion).  Errors are taken over the identifiable slots; the
+others are reported as such, not as errors.
 
 Inertia: with a learned potential the dynamics are unchanged when the kinetic and the potential energy are scaled
 together, and only motions that obey the constraints carry kinetic energy.  So what the data identifies is the
@@ -22,24 +24,49 @@ from diffcontact.state import Inertia
 from diffcontact.systems.base import System
 
 
-def slot_contacts(system: System, chunk_x: torch.Tensor, n_slots: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Contacts per slot in training chunks: (collisions, with_friction), each (n_slots,) int64.
+def slot_contacts(task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Collisions per slot in training chunks, and those that identify μ and e: each (n_slots,) int64.
 
-    A collision is a chunk frame after the first (each follows one simulated step) at which a contact candidate
-    of the slot is active, that is, at which the contact model solves for its impulse; with_friction counts
-    those of candidates with tangential rows.  chunk_x: (N, L, P, d) positions in m.
+    A collision is a chunk step (frame t − 1 to t) at which a contact candidate of the slot is active, that is, at
+    which the contact model solves for its impulse.  Replaying the step with the true parameters (float64):
+    ``slipping`` are those whose contact still slides tangentially after compression or restitution (only they
+    fix μ; a sticking contact bounds it from below), ``bound`` those whose restitution impulse is set by the bound
+    e·f_c,n > 0 (only they fix e; elsewhere the impulse toward the target velocity exceeds it and e below that
+    has no effect).  chunk_x, chunk_v: (N, L, P, d) in m and m/s.
     """
-    det = system.detector
-    collisions = torch.zeros(n_slots, dtype=torch.long)
-    frictional = torch.zeros(n_slots, dtype=torch.long)
+    from diffcontact.simulator import simulator_for
+
+    n_slots = task.params.mu.numel()
+    counts = {k: torch.zeros(n_slots, dtype=torch.long) for k in ("collisions", "slipping", "bound")}
+    det = task.system.detector
     if not det.kinds or chunk_x.shape[1] < 2:
-        return collisions, frictional
-    hit = det.gaps(chunk_x[:, 1:].flatten(0, 1).to(torch.float64)) < 0  # (N·(L−1), K_max)
-    per_candidate = hit.sum(0)
-    tangential = torch.cat([torch.full((k.count,), k.dc > 1) for k in det.kinds])
-    collisions.index_add_(0, det.slot, per_candidate)
-    frictional.index_add_(0, det.slot, per_candidate * tangential)
-    return collisions, frictional
+        return counts
+    sim = simulator_for(task)
+    x0, v0 = (c[:, :-1].flatten(0, 1).to(torch.float64) for c in (chunk_x, chunk_v))
+    with torch.no_grad():
+        x1, v1 = sim.flow(task.params, x0, v0, task.dt)
+        contacts = det.detect(x1)
+        if contacts is None:
+            return counts
+        ph = sim.contact_model.phases(task.system.constraints, task.params, x1, v1, contacts, task.dt)
+    dc, (B, K) = contacts.dc, contacts.active.shape
+    active = contacts.active
+    scale = ph.v_before.abs().amax(-1, keepdim=True).clamp_min(1e-12)  # (B', 1) m/s
+
+    def tangential_speed(f, q):  # ‖(A f + q)_t‖ per contact (B', K)
+        g = ((ph.A @ f[..., None])[..., 0] + q).view(B, K, dc)[..., 1:]
+        return g.norm(dim=-1)
+
+    slipping = torch.zeros_like(active)
+    if dc > 1:
+        after_c = ph.v_before + (ph.A @ ph.f_c[..., None])[..., 0]
+        speed = torch.maximum(tangential_speed(ph.f_c, ph.v_before), tangential_speed(ph.f_r, after_c))
+        slipping = active & ~contacts.frictionless & (speed > 1e-6 * scale)
+    f_rn = ph.f_r.view(B, K, dc)[..., 0]
+    bound = active & (ph.lower > 1e-9 * ph.lower.amax().clamp_min(1e-300)) & (f_rn <= ph.lower * (1 + 1e-6))
+    for key, mask in (("collisions", active), ("slipping", slipping), ("bound", bound)):
+        counts[key].index_add_(0, contacts.slot[mask], torch.ones(int(mask.sum()), dtype=torch.long))
+    return counts
 
 
 def inertia_spread(system: System, learned: Inertia, true: Inertia, x: torch.Tensor) -> dict:
@@ -81,34 +108,37 @@ def compare(learned: torch.Tensor, true: torch.Tensor, identifiable: torch.Tenso
     return out
 
 
-def learned_summary(net, task, chunk_x: torch.Tensor) -> dict:
-    """``{"mu", "e", "mass_ratio"[, "moments"], "inertia", "collisions", "collisions_with_friction"}`` of a model
-    ``net`` (its ``params``: LearnedParams) trained on ``task``'s chunks ``chunk_x`` (N, L, P, d).
+def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> dict:
+    """``{"mu", "e", "mass_ratio"[, "moments"], "inertia", "collisions", "collisions_slipping",
+    "collisions_bound"}`` of a model ``net`` (its ``params``: LearnedParams) trained on ``task``'s chunks
+    ``chunk_x``, ``chunk_v`` (N, L, P, d).
 
-    μ and e per contact slot, with the slots the data can identify (homogeneous tasks share one value, identifiable
-    if any slot is); mass ratio = mass / mass of the first body; moments (extended bodies only): second moments per
-    unit mass in m², body by body and axis by axis (see the module docstring for what of them is identifiable);
-    inertia: ``inertia_spread``, what is.
+    μ and e per contact slot, with the slots the data can identify (``slot_contacts``: μ by slipping collisions,
+    e by collisions whose restitution the bound e·f_c,n sets, or, for a true e of 0, by any collision; homogeneous
+    tasks share one value, identifiable if any slot is); mass ratio = mass / mass of the first body; moments
+    (extended bodies only): second moments per unit mass in m², body by body and axis by axis (see the module
+    docstring for what of them is identifiable); inertia: ``inertia_spread``, what is.
     """
     truth, learned = task.params, net.params
     n_slots = truth.mu.numel()
-    collisions, frictional = slot_contacts(task.system, chunk_x, n_slots)
-    seen_e, seen_mu = collisions > 0, frictional > 0
+    counts = slot_contacts(task, chunk_x, chunk_v)
+    seen_mu = counts["slipping"] > 0
+    seen_e = (counts["bound"] > 0) | ((truth.e == 0) & (counts["collisions"] > 0))
     if learned.homogeneous:  # (one shared value: identified by every slot's contacts)
         seen_e, seen_mu = seen_e.any().expand(n_slots), seen_mu.any().expand(n_slots)
     m_true = truth.inertia.masses.double()
+    m_learned = learned.inertia.masses.detach().double()
     out = {
         "mu": compare(learned.mu.detach().double(), truth.mu.double(), seen_mu),
         "e": compare(learned.e.detach().double(), truth.e.double(), seen_e),
-        "mass_ratio": compare(
-            learned.inertia.masses.detach().double() / learned.inertia.masses[0].item(), m_true / m_true[0]
-        ),
+        "mass_ratio": compare(m_learned / m_learned[0], m_true / m_true[0]),
     }
     moments = truth.inertia.moments
     if moments.numel():
         out["moments"] = compare(learned.inertia.moments.detach().double().flatten(), moments.double().flatten())
     # (at the first frames of up to 64 chunks)
     out["inertia"] = inertia_spread(task.system, learned.inertia, truth.inertia, chunk_x[:64, 0].detach())
-    out["collisions"] = collisions.tolist()
-    out["collisions_with_friction"] = frictional.tolist()
+    out["collisions"] = counts["collisions"].tolist()
+    out["collisions_slipping"] = counts["slipping"].tolist()
+    out["collisions_bound"] = counts["bound"].tolist()
     return out
