@@ -29,10 +29,10 @@ def slot_contacts(task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> dict[st
 
     A collision is a chunk step (frame t − 1 to t) at which a contact candidate of the slot is active, that is, at
     which the contact model solves for its impulse.  Replaying the step with the true parameters (float64):
-    ``slipping`` are those whose contact still slides tangentially after compression or restitution (only they
-    fix μ; a sticking contact bounds it from below), ``bound`` those whose restitution impulse is set by the bound
-    e·f_c,n > 0 (only they fix e; elsewhere the impulse toward the target velocity exceeds it and e below that
-    has no effect).  chunk_x, chunk_v: (N, L, P, d) in m and m/s.
+    ``slipping`` are those whose contact still slides tangentially after a phase with a nonzero impulse (only they
+    fix μ; a sticking contact bounds it from below, a separating one says nothing), ``bound`` those whose
+    restitution impulse is set by the bound e·f_c,n > 0 (only they fix e; elsewhere the impulse toward the target
+    velocity exceeds it and e below that has no effect).  chunk_x, chunk_v: (N, L, P, d) in m and m/s.
     """
     from diffcontact.simulator import simulator_for
 
@@ -53,15 +53,15 @@ def slot_contacts(task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> dict[st
     active = contacts.active
     scale = ph.v_before.abs().amax(-1, keepdim=True).clamp_min(1e-12)  # (B', 1) m/s
 
-    def tangential_speed(f, q):  # ‖(A f + q)_t‖ per contact (B', K)
+    def slides(f, q):  # (B', K): an impulse that leaves the contact sliding, ‖(A f + q)_t‖ > 0
         g = ((ph.A @ f[..., None])[..., 0] + q).view(B, K, dc)[..., 1:]
-        return g.norm(dim=-1)
+        f_n = f.view(B, K, dc)[..., 0]
+        return (f_n > 1e-9 * f_n.amax().clamp_min(1e-300)) & (g.norm(dim=-1) > 1e-6 * scale)
 
     slipping = torch.zeros_like(active)
     if dc > 1:
         after_c = ph.v_before + (ph.A @ ph.f_c[..., None])[..., 0]
-        speed = torch.maximum(tangential_speed(ph.f_c, ph.v_before), tangential_speed(ph.f_r, after_c))
-        slipping = active & ~contacts.frictionless & (speed > 1e-6 * scale)
+        slipping = active & ~contacts.frictionless & (slides(ph.f_c, ph.v_before) | slides(ph.f_r, after_c))
     f_rn = ph.f_r.view(B, K, dc)[..., 0]
     bound = active & (ph.lower > 1e-9 * ph.lower.amax().clamp_min(1e-300)) & (f_rn <= ph.lower * (1 + 1e-6))
     for key, mask in (("collisions", active), ("slipping", slipping), ("bound", bound)):
