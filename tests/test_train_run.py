@@ -169,5 +169,12 @@ def test_summarize_recomputes_learned_json_and_keeps_the_counters(data_root, tmp
     stale = {k: v for k, v in learned.items() if not k.startswith("collisions") and k != "inertia"}
     (run / "learned.json").write_text(json.dumps(stale))
     assert summarize_run(run) == json.loads((run / "learned.json").read_text()) == learned
+    moved = tmp_path / "moved"
+    run.rename(moved)  # (the checkpoint path recorded is the old one: the run's own folder is used)
+    assert summarize_run(moved)["mu"] == learned["mu"]
+    for ckpt in (moved / "checkpoints").glob("best*"):
+        ckpt.unlink()
+    with pytest.raises(ConfigError, match="best checkpoint .* is missing"):
+        summarize_run(moved)
     with pytest.raises(ConfigError, match="not a finished training run"):
         summarize_run(tmp_path / "nothing")

@@ -234,7 +234,12 @@ def summarize_run(run: str | Path) -> dict:
         args = json.loads((run / "config.json").read_text())["args"]
     except (OSError, ValueError, KeyError) as err:
         raise ConfigError(f"{run} is not a finished training run (learned.json, config.json): {err}") from err
-    chosen = ContactLightningModule.load_from_checkpoint(old["best_checkpoint"], map_location="cpu")
+    best = Path(old.get("best_checkpoint") or "")
+    if not best.is_file():  # (a run directory that was moved: its own checkpoints folder)
+        best = run / "checkpoints" / best.name
+    if not best.is_file():
+        raise ConfigError(f"{run}: the best checkpoint {old.get('best_checkpoint')!r} is missing")
+    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
     train = load_split(Path(args["data_root"]) / args["task"], "train")
     fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
