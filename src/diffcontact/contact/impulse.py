@@ -60,20 +60,6 @@ class ContactModel:
     solver: Callable | None = None
     on_failure: str = "raise"
 
-    def impulses(
-        self,
-        constraints: Constraints,
-        params: Params,
-        x: torch.Tensor,
-        v: torch.Tensor,
-        contacts: ContactSet,
-        dt: float,
-    ) -> torch.Tensor:
-        """Velocity jumps Δv (B', P, d) of the colliding elements ``contacts.index`` (x, v: (B, P, d))."""
-        phases = self.phases(constraints, params, x, v, contacts, dt)
-        Bp, P, d = x[contacts.index].shape
-        return (phases.MhJt @ (phases.f_c + phases.f_r)[..., None]).reshape(Bp, P, d)
-
     def phases(
         self,
         constraints: Constraints,
@@ -130,6 +116,7 @@ class ContactModel:
         flag = torch.zeros(x.shape[0], dtype=torch.bool)
         if contacts is None:
             return v, flag
-        dv = self.impulses(constraints, params, x, v, contacts, dt)
+        ph = self.phases(constraints, params, x, v, contacts, dt)
+        dv = (ph.MhJt @ (ph.f_c + ph.f_r)[..., None]).reshape(v[contacts.index].shape)
         flag[contacts.index] = True
         return v.index_put((contacts.index,), v[contacts.index] + dv), flag
