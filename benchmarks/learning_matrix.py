@@ -61,7 +61,13 @@ def collate(out: Path) -> str:
         " | inertia spread | solver failures | skipped | best epoch | time |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for learned in sorted(out.glob("*/*/seed*/learned.json")):
+
+    def order(path: Path):  # model, task, seed in the order of MODELS and TASKS
+        task, model, seed = path.parts[-4], path.parts[-3], path.parts[-2]
+        rank = lambda names, name: names.index(name) if name in names else len(names)  # noqa: E731
+        return rank(MODELS, model), rank(TASKS, task), seed
+
+    for learned in sorted(out.glob("*/*/seed*/learned.json"), key=order):
         s = json.loads(learned.read_text())
         run = learned.parent
         task, model, seed = run.parent.parent.name, run.parent.name, run.name[4:]
