@@ -55,38 +55,40 @@ def fmt(x: float | None, digits: int = 4) -> str:
     return "n/i" if x is None else f"{x:.{digits}f}"
 
 
-def collate(out: Path) -> str:
+def collate(out: Path, tasks: list[str] = TASKS, models: list[str] = MODELS) -> str:
+    """The markdown table of every (task, model) cell, in that order: one row per finished run (every seed), and
+    one "not run" row for a cell without any."""
     rows = [
         "| task | model | seed | μ err | e err | μ / e err, slots ≥ 20 ident. coll. | mass ratio err (rel)"
         " | inertia spread | solver failures | skipped | best epoch | time |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-
-    def order(path: Path):  # model, task, seed in the order of MODELS and TASKS
-        task, model, seed = path.parts[-4], path.parts[-3], path.parts[-2]
-        rank = lambda names, name: names.index(name) if name in names else len(names)  # noqa: E731
-        return rank(MODELS, model), rank(TASKS, task), seed
-
-    for learned in sorted(out.glob("*/*/seed*/learned.json"), key=order):
-        s = json.loads(learned.read_text())
-        run = learned.parent
-        task, model, seed = run.parent.parent.name, run.parent.name, run.name[4:]
-        ratios = s["mass_ratio"]
-        rel = max(abs(a / b - 1) for a, b in zip(ratios["learned"], ratios["true"]))
-        hetero = len(set(s["mu"]["true"])) > 1 or len(set(s["e"]["true"])) > 1
-        per_slot = (
-            f"{fmt(slot_errors(s['mu'], s['collisions_slipping']), 3)} / "
-            f"{fmt(slot_errors(s['e'], s['collisions_bound']), 3)}"
-            if hetero
-            else "—"
-        )
-        best = Path(s["best_checkpoint"]).stem.split("=")[-1] if s.get("best_checkpoint") else "?"
-        rows.append(
-            f"| {task} | {model} | {seed} | {fmt(s['mu']['max_abs_error'])} | {fmt(s['e']['max_abs_error'])} "
-            f"| {per_slot} | {rel:.3%} | {s['inertia']['spread']:.3%} | {s['solver_failures']} "
-            f"| {s['skipped_steps']} | {best} | {s['wall_time_s']:.0f} s |"
-        )
+    for model in models:
+        for task in tasks:
+            runs = sorted((out / task / model).glob("seed*/learned.json"))
+            if not runs:
+                rows.append(f"| {task} | {model} | — | not run |" + " |" * 8)
+            rows.extend(_row(task, model, learned) for learned in runs)
     return "\n".join(rows)
+
+
+def _row(task: str, model: str, learned: Path) -> str:
+    s = json.loads(learned.read_text())
+    ratios = s["mass_ratio"]
+    rel = max(abs(a / b - 1) for a, b in zip(ratios["learned"], ratios["true"]))
+    hetero = len(set(s["mu"]["true"])) > 1 or len(set(s["e"]["true"])) > 1
+    per_slot = (
+        f"{fmt(slot_errors(s['mu'], s['collisions_slipping']), 3)} / "
+        f"{fmt(slot_errors(s['e'], s['collisions_bound']), 3)}"
+        if hetero
+        else "—"
+    )
+    best = Path(s["best_checkpoint"]).stem.split("=")[-1] if s.get("best_checkpoint") else "?"
+    return (
+        f"| {task} | {model} | {learned.parent.name[4:]} | {fmt(s['mu']['max_abs_error'])} "
+        f"| {fmt(s['e']['max_abs_error'])} | {per_slot} | {rel:.3%} | {s['inertia']['spread']:.3%} "
+        f"| {s['solver_failures']} | {s['skipped_steps']} | {best} | {s['wall_time_s']:.0f} s |"
+    )
 
 
 def main() -> None:
