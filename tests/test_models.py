@@ -45,6 +45,16 @@ def test_unknown_model_and_transform_are_clear_errors():
         build_model(task, mu_transform="abs")
 
 
+def test_regularisation_of_cmr_models_can_be_set_and_only_there():
+    task = dc.build_task("BP1")
+    assert build_model(task, "CMr-CD-CLNN").simulator.contact_model.reg == 0.01
+    assert build_model(task, "CMr-CD-CHNN", reg=1e-4).simulator.contact_model.reg == 1e-4
+    with pytest.raises(ConfigError, match="reg = 0.001 is for the regularised models"):
+        build_model(task, "CM-CD-CLNN", reg=1e-3)
+    with pytest.raises(ConfigError, match="reg = 0 is not > 0"):
+        build_model(task, "CMr-CD-CLNN", reg=0.0)
+
+
 def test_homogeneous_tasks_learn_one_pair_and_others_one_per_slot():
     assert build_model(dc.build_task("BP5-e")).params.mu_raw.numel() == 1
     p = build_model(dc.build_task("BP5")).params

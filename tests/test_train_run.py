@@ -12,7 +12,7 @@ import diffcontact as dc
 from diffcontact.data.generate import generate_dataset
 from diffcontact.errors import ConfigError
 from diffcontact.train.module import ContactLightningModule
-from diffcontact.train.run import resolve_preset, train_run
+from diffcontact.train.run import resolve_preset, task_training, train_run
 from diffcontact.train.summary import learned_summary, slot_contacts
 
 
@@ -78,6 +78,37 @@ def test_presets_give_the_optimiser_settings_and_explicit_values_win():
     assert resolve_preset("default", lr=3e-3, schedule="constant", batch_size=None)["lr"] == 3e-3
     with pytest.raises(ConfigError, match="unknown settings"):
         resolve_preset("default", momentum=0.9)
+
+
+def _task_file(tmp_path, training: str):
+    text = (dc.config.tasks_dir() / "BP1.toml").read_text() + "\n[training]\n" + training
+    path = tmp_path / "BP1.toml"
+    path.write_text(text)
+    return path
+
+
+def test_task_file_training_table_adjusts_the_default_preset_only(tmp_path):
+    path = _task_file(tmp_path, "mu_coef_lr = 1.0\nepochs = 7\n")
+    own = task_training(path)
+    assert own == {"mu_coef_lr": 1.0, "epochs": 7}
+    assert resolve_preset("default", own)["mu_coef_lr"] == 1.0
+    assert resolve_preset("default", own, epochs=3)["epochs"] == 3  # (an explicit value wins)
+    assert resolve_preset("published", own)["epochs"] == 1000
+    assert task_training("BP1") == {}
+    with pytest.raises(ConfigError, match=r"training.momentum is not a training setting"):
+        task_training(_task_file(tmp_path, "momentum = 0.9\n"))
+    with pytest.raises(ConfigError, match=r"training.mu_coef_lr = -1 is not positive"):
+        task_training(_task_file(tmp_path, "mu_coef_lr = -1.0\n"))
+
+
+def test_mu_learns_at_its_own_rate_where_given():
+    def rates(**kw):
+        module = ContactLightningModule("BP1", lr=1e-2, coef_lr=0.5, **kw)
+        module.trainer = None
+        return [g["lr"] for g in module.configure_optimizers().param_groups]
+
+    assert rates() == pytest.approx([1e-2, 5e-3, 5e-3])  # (others, μ, e)
+    assert rates(mu_coef_lr=1.0) == pytest.approx([1e-2, 1e-2, 5e-3])
 
 
 def _summary(task: str):

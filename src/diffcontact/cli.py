@@ -118,6 +118,12 @@ def train(
     coef_lr: float = typer.Option(
         None, "--coef-lr", help="Learning rate of μ and e relative to the others (default: the preset's)."
     ),
+    mu_coef_lr: float = typer.Option(
+        None, "--mu-coef-lr", help="Learning rate of μ relative to the others (default: the preset's or --coef-lr)."
+    ),
+    reg: float = typer.Option(
+        None, "--reg", help="CMr models: the regularisation A + reg·I of the effective mass (default 0.01)."
+    ),
     smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of the preset's."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the run's last checkpoint."),
     progress: bool = typer.Option(True, help="Show a progress bar."),
@@ -130,6 +136,7 @@ def train(
         summary = train_run(
             task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
             batch_size=batch_size, lr=lr, schedule=schedule, coef_lr=coef_lr,
+            mu_coef_lr=mu_coef_lr, reg=reg,
             mu_transform="softplus" if smooth else None, e_transform="sigmoid" if smooth else None, resume=resume,
             progress=progress,
         )  # fmt: skip

@@ -135,8 +135,10 @@ def load_meta(folder: str | Path) -> dict[str, Any]:
 
 
 def config_json(config: TaskConfig) -> Any:
-    """The task config as recorded in the metadata (the parsed TOML through a JSON round trip)."""
-    return json.loads(json.dumps(config.raw, sort_keys=True, default=str))
+    """The task config as recorded in the metadata (the parsed TOML through a JSON round trip), without the
+    ``[training]`` table, which does not change the data."""
+    data_part = {k: v for k, v in config.raw.items() if k != "training"}
+    return json.loads(json.dumps(data_part, sort_keys=True, default=str))
 
 
 def check_config(meta: dict[str, Any], config: TaskConfig | None, folder: str | Path) -> None:

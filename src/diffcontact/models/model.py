@@ -49,15 +49,22 @@ def build_model(
     seed: int = 0,
     on_failure: str = "raise",
     solver=None,
+    reg: float | None = None,
 ) -> ContactModelNet:
     """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters.
 
     ``solver`` (signature of :func:`diffcontact.solver.solve_cone_qp`) replaces the contact solver, e.g. to count
-    failures; ``on_failure`` is passed to the default one.
+    failures; ``on_failure`` is passed to the default one.  ``reg`` replaces a CMr model's regularisation of the
+    effective mass (A + reg·I, 1/kg; default ``CMR_REG``, the paper's).
     """
     if name not in MODEL_NAMES:
         raise ConfigError(f"model = {name!r} is not one of {list(MODEL_NAMES)}")
-    dynamics, reg = MODEL_NAMES[name]
+    dynamics, default_reg = MODEL_NAMES[name]
+    if reg is not None and not default_reg:
+        raise ConfigError(f"reg = {reg:g} is for the regularised models (CMr-...), not {name}")
+    if reg is not None and not reg > 0:
+        raise ConfigError(f"reg = {reg:g} is not > 0 (the exact model is CM-...)")
+    reg = default_reg if reg is None else reg
     system = task.system
     comp = task.config.section("contact").number("compensation", 0.125, lo=0.0, hi=1.0)
     model = ContactModel(reg=reg, compensation=comp, solver=solver, on_failure=on_failure)

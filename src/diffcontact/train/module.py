@@ -41,6 +41,8 @@ class ContactLightningModule(pl.LightningModule):
         dtype: str = "float32",
         schedule: str = "constant",
         coef_lr: float = 1.0,
+        mu_coef_lr: float | None = None,
+        reg: float | None = None,
     ):
         super().__init__()
         if schedule not in SCHEDULES:
@@ -59,6 +61,7 @@ class ContactLightningModule(pl.LightningModule):
             layers=layers,
             seed=seed,
             solver=self._counting_solver,
+            reg=reg,
         )
         self.net = net.to(getattr(torch, dtype))
 
@@ -124,12 +127,15 @@ class ContactLightningModule(pl.LightningModule):
         return m / m[0]
 
     def configure_optimizers(self):
-        # μ and e at coef_lr × lr: Adam moves a parameter about lr per step, whatever its gradient's size
-        p = self.net.params
+        # e (and μ unless mu_coef_lr is given) at coef_lr × lr: Adam moves a parameter about lr per step, whatever
+        # its gradient's size
+        p, hp = self.net.params, self.hparams
+        mu_coef = hp.coef_lr if hp.mu_coef_lr is None else hp.mu_coef_lr
         coefs = {id(p.mu_raw), id(p.e_raw)}
         groups = [
             {"params": [t for t in self.net.parameters() if id(t) not in coefs]},
-            {"params": [p.mu_raw, p.e_raw], "lr": self.hparams.lr * self.hparams.coef_lr},
+            {"params": [p.mu_raw], "lr": hp.lr * mu_coef},
+            {"params": [p.e_raw], "lr": hp.lr * hp.coef_lr},
         ]
         opt = torch.optim.AdamW(groups, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
         epochs = self.trainer.max_epochs if self._trainer is not None and self.trainer.max_epochs else 1

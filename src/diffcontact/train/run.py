@@ -71,6 +71,7 @@ PRESETS = {
         mu_transform="projected",
         e_transform="projected",
         coef_lr=1 / 6,
+        mu_coef_lr=None,
     ),
     "published": dict(
         epochs=1000,
@@ -80,18 +81,43 @@ PRESETS = {
         mu_transform="relu",
         e_transform="hardsigmoid",
         coef_lr=1.0,
+        mu_coef_lr=None,
     ),
 }
 
 
-def resolve_preset(preset: str, **given) -> dict:
-    """The settings of ``preset`` (``PRESETS``), each replaced where given (not None)."""
+def task_training(task: str | Path) -> dict:
+    """The ``[training]`` table of a task file: the settings of the default preset that differ for this task
+    (for example ``mu_coef_lr``), each checked against the preset's known settings and their domains."""
+    from diffcontact.config import load_task
+
+    table = load_task(task).section("training")
+    known = PRESETS["default"]
+    settings = {}
+    for key in table.data:
+        if key not in known:
+            raise ConfigError(f"training.{key} is not a training setting; known: {list(known)}")
+        if isinstance(known[key], str):  # (its options are checked where it is used)
+            if not isinstance(table.get(key), str):
+                raise ConfigError(f"training.{key} = {table.get(key)!r} is not a string")
+            settings[key] = table.get(key)
+        elif key in ("epochs", "batch_size"):
+            settings[key] = table.integer(key, lo=1)
+        else:
+            settings[key] = table.number(key, lo=0.0, lo_open=True)
+    return settings
+
+
+def resolve_preset(preset: str, task_settings: dict | None = None, **given) -> dict:
+    """The settings of ``preset`` (``PRESETS``), then the task's own (``task_training``; default preset only),
+    each replaced where given (not None)."""
     if preset not in PRESETS:
         raise ConfigError(f"preset = {preset!r} is not one of {list(PRESETS)}")
     unknown = set(given) - set(PRESETS[preset])
     if unknown:
         raise ConfigError(f"unknown settings {sorted(unknown)}; known: {list(PRESETS[preset])}")
-    return {k: v if given.get(k) is None else given[k] for k, v in PRESETS[preset].items()}
+    base = {**PRESETS[preset], **(task_settings or {})} if preset == "default" else PRESETS[preset]
+    return {k: v if given.get(k) is None else given[k] for k, v in base.items()}
 
 
 def train_run(
@@ -110,14 +136,17 @@ def train_run(
     mu_transform: str | None = None,
     e_transform: str | None = None,
     coef_lr: float | None = None,
+    mu_coef_lr: float | None = None,
+    reg: float | None = None,
     dtype: str = "float32",
     resume: bool = False,
     progress: bool = True,
 ) -> dict:
     """Train ``model`` on the generated dataset of ``task`` into ``out`` (default runs/<task>/<model>/seed<seed>).
 
-    ``preset`` names the training settings (``PRESETS``); ``epochs``, ``lr``, ``schedule``, ``batch_size`` and the
-    transforms override it where given.
+    ``preset`` names the training settings (``PRESETS``), which the task file's ``[training]`` table adjusts for
+    the default preset; ``epochs``, ``lr``, ``schedule``, ``batch_size``, the transforms and the rates override
+    them where given.
 
     The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last, every
     epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  ``resume`` continues
@@ -126,8 +155,10 @@ def train_run(
     """
     if model not in MODEL_NAMES:
         raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES)}")
+    own = task_training(task)
     settings = resolve_preset(
         preset,
+        own,
         epochs=epochs,
         lr=lr,
         schedule=schedule,
@@ -135,8 +166,9 @@ def train_run(
         mu_transform=mu_transform,
         e_transform=e_transform,
         coef_lr=coef_lr,
+        mu_coef_lr=mu_coef_lr,
     )
-    coef_lr = settings["coef_lr"]
+    coef_lr, mu_coef_lr = settings["coef_lr"], settings["mu_coef_lr"]
     epochs, lr, schedule, batch_size = (settings[k] for k in ("epochs", "lr", "schedule", "batch_size"))
     mu_transform, e_transform = settings["mu_transform"], settings["e_transform"]
     if epochs < 1:
@@ -157,11 +189,14 @@ def train_run(
         lr=lr,
         schedule=schedule,
         coef_lr=coef_lr,
+        mu_coef_lr=mu_coef_lr,
+        reg=MODEL_NAMES[model][1] if reg is None else reg,
         weight_decay=weight_decay,
         mu_transform=mu_transform,
         e_transform=e_transform,
         dtype=dtype,
         data_root=str(data_root),
+        task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
     )
     versions = dict(
         diffcontact=diffcontact.__version__,
@@ -185,6 +220,8 @@ def train_run(
         dtype=dtype,
         schedule=schedule,
         coef_lr=coef_lr,
+        mu_coef_lr=mu_coef_lr,
+        reg=reg,
     )
     loggers = [pl.loggers.CSVLogger(run / "logs", name="csv"), pl.loggers.TensorBoardLogger(run / "logs", name="tb")]
     checkpoints = pl.callbacks.ModelCheckpoint(
