@@ -12,7 +12,7 @@ mass matrix restricted to the constraints' tangent space, up to one factor: ``in
 that.  Mass ratios follow from it where bodies move freely; single moments do not: a 2-D body's kinetic energy of
 rotation holds only the sum of its two second moments, and the gyroscope on its joint holds only the ratios of
 its principal moments about the joint (its per-axis second moments about the centre of mass are known up to
-J → s·(J + r²) − r², r the joint-to-centre offset).
+J_k → s·(J_k + r_k²) − r_k², r_k the joint-to-centre offset's component along axis k).
 """
 
 from __future__ import annotations
