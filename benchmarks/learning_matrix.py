@@ -72,6 +72,21 @@ def collate(out: Path, tasks: list[str] = TASKS, models: list[str] = MODELS) -> 
     return "\n".join(rows)
 
 
+def totals(out: Path, tasks: list[str] = TASKS, models: list[str] = MODELS) -> str:
+    """One line: the summed wall time of the seed-0 runs of the matrix (Table 2) and of every run."""
+    times = {
+        (t, m, p.parent.name): json.loads(p.read_text())["wall_time_s"]
+        for m in models
+        for t in tasks
+        for p in (out / t / m).glob("seed*/learned.json")
+    }
+    seed0 = [v for (t, m, seed), v in times.items() if seed == "seed0"]
+    return (
+        f"Seed-0 cells: {len(seed0)} of {len(tasks) * len(models)} run, {sum(seed0) / 3600:.2f} h of run time in all "
+        f"(about {sum(seed0) / 7200:.2f} h two at a time); every run: {len(times)}, {sum(times.values()) / 3600:.2f} h."
+    )
+
+
 def _row(task: str, model: str, learned: Path) -> str:
     s = json.loads(learned.read_text())
     ratios = s["mass_ratio"]
@@ -112,7 +127,7 @@ def main() -> None:
             for run, seconds in pool.map(lambda j: run_one(*j, out, args.data), jobs):
                 print(f"{run}: {seconds:.0f} s", flush=True)
         print(f"matrix: {len(jobs)} runs, {time.perf_counter() - started:.0f} s with {args.jobs} jobs", flush=True)
-    table = collate(out)
+    table = collate(out) + "\n\n" + totals(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "table.md").write_text(table + "\n")
     print(table)
