@@ -201,6 +201,34 @@ def evaluate(
                f"over {energy['frames']} frames -> {run}/eval/")  # fmt: skip
 
 
+@app.command("reproduce")
+def reproduce(
+    tasks: list[str] = typer.Option([], "--tasks", "-t", help="Tasks (default: the 8 benchmark tasks)."),
+    models: list[str] = typer.Option([], "--models", "-m", help="Models (default: the 4 contact models, 3 baselines)."),
+    seeds: list[int] = typer.Option([0], "--seeds", "-s", help="Seeds of each (task, model)."),
+    out: str = typer.Option("reproduction", "--out", help="Folder of the runs, figures and report.md."),
+    quick: bool = typer.Option(False, "--quick", help="Tiny datasets and one epoch: the pipeline in minutes."),
+    jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process with one thread each)."),
+    data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick)."),
+) -> None:
+    """Train (or reuse) and evaluate every task x model x seed, then write OUT/report.md beside the published values.
+
+    Resumable: evaluated runs are skipped, an interrupted training continues from its last checkpoint."""
+    import sys
+
+    from diffcontact.errors import ConfigError, DatasetError
+    from diffcontact.eval.reproduce import reproduce as run_matrix
+
+    try:
+        run_matrix(
+            tasks, models, seeds, out, quick=quick, jobs=jobs, data=data or None, echo=typer.echo,
+            command=" ".join(["diffcontact", *sys.argv[1:]]),
+        )  # fmt: skip
+    except (ConfigError, DatasetError) as err:
+        typer.echo(f"{type(err).__name__}: {err}", err=True)
+        raise typer.Exit(2) from err
+
+
 @bench_app.command("near-psd")
 def bench_near_psd(
     total: int = typer.Option(100_000, "--n", help="Number of problems."),
