@@ -72,7 +72,8 @@ def rollout_strip(
             _draw(ax, system, x[t], bool(contact[t]) if r == 0 else False)
             ax.set_title(f"{t * dt:.2f} s" + (" (contact)" if contact[t] else "") if r == 0 else "", fontsize=7)
             if c == 0:
-                ax.text(-0.08, 0.5, label, transform=ax.transAxes, rotation=90, ha="right", va="center", fontsize=7)
+                text = ax.text2D if system.d == 3 else ax.text
+                text(-0.08, 0.5, label, transform=ax.transAxes, rotation=90, ha="right", va="center", fontsize=7)
     fig.subplots_adjust(left=0.06, right=0.995, top=0.9, bottom=0.01, wspace=0.03, hspace=0.05)
     path = Path(path)
     _save_figure(fig, path, dpi=70)

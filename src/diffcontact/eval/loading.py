@@ -133,10 +133,11 @@ def _contact_model_net(run: Path, config: dict, checkpoint: Path, task: Task) ->
     return net
 
 
-def _register_contact_models() -> None:
+def _register_builtin_models() -> None:
+    """The models of the package (every process that evaluates sees them; a new model family adds its line here)."""
     from diffcontact.models import MODEL_NAMES
 
     register_model(MODEL_NAMES, _contact_model_net)
 
 
-_register_contact_models()
+_register_builtin_models()
