@@ -103,3 +103,20 @@ def test_errors_are_one_line_and_name_the_problem(trained, tmp_path):
         evaluate_run(run)
     with pytest.raises(ConfigError, match="config.json is missing"):
         evaluate_run(tmp_path / "nothing")
+
+
+def test_the_reproduce_worker_continues_an_interrupted_training(trained, tmp_path):
+    import csv
+
+    from diffcontact.eval.worker import main
+
+    run = tmp_path / "run"
+    shutil.copytree(trained / "run", run, ignore=shutil.ignore_patterns("eval"))
+    (run / "learned.json").unlink()  # (as if killed after its first epoch's checkpoint)
+    args = ["BP1", "CM-CD-CLNN", "0", str(run), str(trained / "data"), "--train", "--epochs", "2"]
+    assert main([*args, "--batch-size", "8", "--frames", "6"]) == 0
+    assert json.loads((run / "learned.json").read_text())["epochs_trained"] == 2
+    logs = sorted((run / "logs" / "csv").glob("version_*/metrics.csv"))
+    epochs = [sorted({int(r["epoch"]) for r in csv.DictReader(p.open()) if r.get("epoch")}) for p in logs]
+    assert epochs == [[0], [1]]  # the second session trained epoch 1 only: resumed, not restarted
+    assert json.loads((run / "eval" / "metrics.json").read_text())["frames"] == 6
