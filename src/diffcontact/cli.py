@@ -186,12 +186,12 @@ def evaluate(
     pictures: bool = typer.Option(True, help="Also draw the rollout picture and GIF."),
 ) -> None:
     """Metrics (5-step error, error curve, true energy) of a run's best model against the exact model; figures."""
-    from diffcontact.errors import ConfigError, DatasetError
+    from diffcontact.errors import DiffContactError
     from diffcontact.eval.evaluate import evaluate_run
 
     try:
         m = evaluate_run(run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures)
-    except (ConfigError, DatasetError, FloatingPointError) as err:
+    except (DiffContactError, FloatingPointError) as err:  # (a bad run or data, a failed solve, a diverging model)
         typer.echo(f"{type(err).__name__}: {err}", err=True)
         raise typer.Exit(2) from err
     err5, energy = m["trajectory_error"], m["energy"]

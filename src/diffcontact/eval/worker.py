@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=None, help="Frames rolled out in the evaluation.")
     args = p.parse_args(argv)
 
-    from diffcontact.errors import ConfigError, DatasetError
+    from diffcontact.errors import DiffContactError
     from diffcontact.eval.evaluate import evaluate_run
     from diffcontact.train.run import train_run
 
@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"resuming failed ({type(err).__name__}: {err}); training from the start", flush=True)
                 train_run(args.task, args.model, progress=False, **settings)
         m = evaluate_run(args.run, task=args.task, data_root=args.data, frames=args.frames)
-    except (ConfigError, DatasetError, FloatingPointError) as err:
+    except (DiffContactError, FloatingPointError) as err:
         print(f"{type(err).__name__}: {err}", file=sys.stderr)
         return 2
     print(f"{args.task} {args.model} seed {args.seed}: 5-step error {m['trajectory_error']['mean']:.4g}")
