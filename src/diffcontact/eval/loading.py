@@ -113,8 +113,10 @@ def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
 
 
 def _contact_model_net(run: Path, config: dict, checkpoint: Path, task: Task) -> nn.Module:
-    """The four contact models (``diffcontact.models.MODEL_NAMES``) from a Lightning checkpoint, with the default
-    contact solver raising on failure (training counted failures and continued; evaluation must not)."""
+    """A model trained by ``diffcontact train`` (``diffcontact.models.MODEL_NAMES``) from its Lightning checkpoint;
+    the contact models with the default contact solver, raising on failure (training counted failures and
+    continued; evaluation must not)."""
+    from diffcontact.models import ContactModelNet
     from diffcontact.train.module import ContactLightningModule
 
     try:
@@ -128,8 +130,9 @@ def _contact_model_net(run: Path, config: dict, checkpoint: Path, task: Task) ->
             f"records {config['args']['model']} on {config['args']['task']!r}"
         )
     net = module.net
-    sim = net.simulator
-    sim.contact_model = dataclasses.replace(sim.contact_model, solver=None, on_failure="raise")
+    if isinstance(net, ContactModelNet):  # (a model of the module without the contact solver keeps its own step)
+        sim = net.simulator
+        sim.contact_model = dataclasses.replace(sim.contact_model, solver=None, on_failure="raise")
     return net
 
 
