@@ -18,6 +18,13 @@ def _pyplot():
     return plt
 
 
+def _floor(values, published: float) -> float:
+    """The lower limit of a log axis: the published one (spec F.1), lowered to the decade below the smallest positive
+    value if that is smaller."""
+    positive = [v for v in values if v > 0]
+    return min(published, 10.0 ** np.floor(np.log10(min(positive)))) if positive else published
+
+
 def _grid(n: int):
     """A figure with n panels in rows of up to 4, and the flat list of its axes."""
     plt = _pyplot()
@@ -31,7 +38,8 @@ def _grid(n: int):
 
 def error_curves(panels: dict[str, dict[str, list[float]]], dts: dict[str, float], path: str | Path) -> Path:
     """Fig. 4: per panel (task) the mean relative error per frame of each model ({task: {model: curve}}), log y
-    from 1e-5 to 1e2, against time t·dt (``dts``: {task: dt} in s); a dashed line at 4·dt, the training horizon."""
+    from 1e-5 (lower where a curve is) to 1e2, against time t·dt (``dts``: {task: dt} in s); a dashed line at 4·dt,
+    the training horizon."""
     plt = _pyplot()
     fig, axes = _grid(len(panels))
     for ax, (task, curves) in zip(axes, panels.items()):
@@ -41,7 +49,7 @@ def error_curves(panels: dict[str, dict[str, list[float]]], dts: dict[str, float
             ax.plot(t, np.where(curve > 0, curve, np.nan), label=model, lw=1.2)  # (0, as at frame 0: off a log axis)
         ax.axvline(4 * dt, color="0.5", ls="--", lw=0.8)
         ax.set_yscale("log")
-        ax.set_ylim(1e-5, 1e2)
+        ax.set_ylim(_floor([v for c in curves.values() for v in c], 1e-5), 1e2)
         ax.set_title(task, fontsize=9)
         ax.set_xlabel("t (s)", fontsize=8)
         ax.set_ylabel("rel. error", fontsize=8)
@@ -78,7 +86,7 @@ def energy_panels(panels: dict[str, dict[str, list[float]]], dts: dict[str, floa
 
 def error_bars(cells: dict[str, dict[str, tuple[float, float | None]]], path: str | Path) -> Path:
     """Fig. 3: the 5-step error (mean and 95 % half width) of each model, grouped by task ({task: {model: (mean,
-    half)}}; a missing cell is left empty), log y from 1e-5 to 30."""
+    half)}}; a missing cell is left empty), log y from 1e-5 (lower where a bar is) to 30."""
     plt = _pyplot()
     tasks = list(cells)
     models = list(dict.fromkeys(m for row in cells.values() for m in row))
@@ -95,7 +103,7 @@ def error_bars(cells: dict[str, dict[str, tuple[float, float | None]]], path: st
         ax.bar(xs, means, width, yerr=halves, label=model, capsize=2)
     ax.set_xticks(range(len(tasks)), tasks, fontsize=8)
     ax.set_yscale("log")
-    ax.set_ylim(1e-5, 30)
+    ax.set_ylim(_floor([m for row in cells.values() for m, _ in row.values()], 1e-5), 30)
     ax.set_ylabel("5-step rel. error", fontsize=8)
     ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
