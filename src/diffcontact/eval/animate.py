@@ -5,12 +5,11 @@ Bodies are drawn by :mod:`diffcontact.render` (the same drawing as ``diffcontact
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from diffcontact.eval.files import save_figure, save_gif
 from diffcontact.render import _draw_2d, _draw_3d
 from diffcontact.systems.base import System
 
@@ -38,20 +37,6 @@ def _draw(ax, system: System, x: np.ndarray, hit: bool) -> None:
     ax.set_yticks([])
 
 
-def _save_figure(fig, path: Path, dpi: int) -> None:
-    """Save a matplotlib figure as PNG to a temporary file, then rename onto ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=dpi)
-        os.chmod(tmp, 0o644)  # (mkstemp makes 0600)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-
-
 def rollout_strip(
     system: System, rows: dict[str, np.ndarray], contact: np.ndarray, path: str | Path, dt: float, every: int = 5
 ) -> Path:
@@ -75,10 +60,9 @@ def rollout_strip(
                 text = ax.text2D if system.d == 3 else ax.text
                 text(-0.08, 0.5, label, transform=ax.transAxes, rotation=90, ha="right", va="center", fontsize=7)
     fig.subplots_adjust(left=0.06, right=0.995, top=0.9, bottom=0.01, wspace=0.03, hspace=0.05)
-    path = Path(path)
-    _save_figure(fig, path, dpi=70)
+    save_figure(fig, path, dpi=70)
     plt.close(fig)
-    return path
+    return Path(path)
 
 
 def compare_gif(
@@ -86,7 +70,6 @@ def compare_gif(
 ) -> Path:
     """A GIF of the true (left) and predicted (right) motion side by side: x_true, x_pred (T, P, d), contact (T,)
     the true frames with an impulse; frame time dt in s."""
-    import imageio.v2 as imageio
     import matplotlib
 
     matplotlib.use("Agg")
@@ -104,15 +87,5 @@ def compare_gif(
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     plt.close(fig)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".gif", dir=path.parent)
-    os.close(fd)
-    try:
-        imageio.mimsave(tmp, frames, duration=max(dt, 0.02), loop=0)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    return path
+    save_gif(path, frames, max(dt, 0.02))
+    return Path(path)

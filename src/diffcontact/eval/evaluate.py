@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import json
-import os
 import platform
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
 import diffcontact
+from diffcontact.eval.files import save_npz, write_json
 from diffcontact.eval.loading import load_run
 from diffcontact.eval.metrics import (
     energy_deviation,
@@ -28,20 +27,6 @@ CURVE = 50  # frames of the Fig. 4 curve and the Fig. 5 energy
 FRAMES = 70  # frames rolled out (the rollout pictures, paper Figs. 7-13)
 # the test trajectory shown in Fig. 5 (spec F.1), and 0 for the other tasks
 SHOWN = {"BP5-e": 4, "CP3-e": 2, "Gyro-e": 3}
-
-
-def write_json(path: Path, obj) -> None:
-    """Write JSON to a temporary file in the same folder, then rename onto ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".json", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(json.dumps(obj, indent=2) + "\n")
-        os.chmod(tmp, 0o644)  # (mkstemp makes 0600)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def evaluate_run(
@@ -114,7 +99,7 @@ def evaluate_run(
     plots.error_curves({name: {loaded.model_name: metrics["error_curve"]}}, dts, out / "error.png")
     truth, pred = metrics["energy"]["shown_true"], metrics["energy"]["shown_predicted"]
     plots.energy_panels({name: {"truth": truth, loaded.model_name: pred}}, dts, out / "energy.png")
-    _save_npz(out / "rollout.npz", x=ro.x[shown].numpy(), x_hat=ro.x_hat[shown].numpy(), contact=ro.contact[shown])
+    save_npz(out / "rollout.npz", x=ro.x[shown].numpy(), x_hat=ro.x_hat[shown].numpy(), contact=ro.contact[shown])
     if pictures:
         system, xs, xh, hit = loaded.task.system, ro.x[shown].numpy(), ro.x_hat[shown].numpy(), ro.contact[shown]
         animate.rollout_strip(system, {"truth": xs, loaded.model_name: xh}, hit.numpy(), out / "rollout.png", ro.dt)
@@ -130,15 +115,3 @@ def _learned(run: Path) -> dict | None:
         return None
     learned = json.loads(path.read_text())
     return {k: learned[k] for k in ("mu", "e", "mass_ratio", "moments", "inertia") if k in learned}
-
-
-def _save_npz(path: Path, **arrays) -> None:
-    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **{k: np.asarray(a) for k, a in arrays.items()})
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)

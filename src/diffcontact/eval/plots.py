@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcontact.eval.animate import _save_figure
+from diffcontact.eval.files import save_figure
 
 
 def _pyplot():
@@ -56,7 +56,7 @@ def error_curves(panels: dict[str, dict[str, list[float]]], dts: dict[str, float
         ax.tick_params(labelsize=7)
     axes[0].legend(fontsize=6)
     fig.tight_layout()
-    _save_figure(fig, Path(path), dpi=80)
+    save_figure(fig, path, dpi=80)
     plt.close(fig)
     return Path(path)
 
@@ -79,7 +79,7 @@ def energy_panels(panels: dict[str, dict[str, list[float]]], dts: dict[str, floa
         ax.tick_params(labelsize=7)
     axes[0].legend(fontsize=6)
     fig.tight_layout()
-    _save_figure(fig, Path(path), dpi=80)
+    save_figure(fig, path, dpi=80)
     plt.close(fig)
     return Path(path)
 
@@ -107,6 +107,6 @@ def error_bars(cells: dict[str, dict[str, tuple[float, float | None]]], path: st
     ax.set_ylabel("5-step rel. error", fontsize=8)
     ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
-    _save_figure(fig, Path(path), dpi=80)
+    save_figure(fig, path, dpi=80)
     plt.close(fig)
     return Path(path)

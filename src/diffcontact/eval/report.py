@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import torch
 
 import diffcontact
 from diffcontact.eval import published
+from diffcontact.eval.files import write_text
 from diffcontact.eval.reproduce import evaluated, run_dir
 from diffcontact.models import MODEL_NAMES
 
@@ -167,7 +167,7 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
     lines.append("")
     lines += _rollouts(out, tasks, models, seed, first, missing, figures)
     path = out / "report.md"
-    _write_text(path, "\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
     return path
 
 
@@ -302,15 +302,3 @@ def _rollouts(out, tasks, models, seed, first, missing, figures) -> list[str]:
             else:
                 lines.append(f"- {m}: {missing.get((t, m), 'no GIF')}")
     return [*lines, ""]
-
-
-def _write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(suffix=".md", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from diffcontact.config import available_tasks
 from diffcontact.errors import ConfigError
-from diffcontact.eval.evaluate import write_json
+from diffcontact.eval.files import write_json
 from diffcontact.eval.loading import registered_models
 from diffcontact.eval.published import BASELINES
 from diffcontact.models import MODEL_NAMES
