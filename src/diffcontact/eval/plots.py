@@ -84,9 +84,14 @@ def energy_panels(panels: dict[str, dict[str, list[float]]], dts: dict[str, floa
     return Path(path)
 
 
-def error_bars(cells: dict[str, dict[str, tuple[float, float | None]]], path: str | Path) -> Path:
+def error_bars(
+    cells: dict[str, dict[str, tuple[float, float | None]]],
+    path: str | Path,
+    published: dict[str, dict[str, tuple[float, float]]] | None = None,
+) -> Path:
     """Fig. 3: the 5-step error (mean and 95 % half width) of each model, grouped by task ({task: {model: (mean,
-    half)}}; a missing cell is left empty), log y from 1e-5 (lower where a bar is) to 30."""
+    half)}}; a missing cell is left empty), log y from 1e-5 (lower where a bar is) to 30; ``published`` values of
+    the same form are black marks on the bars they belong to."""
     plt = _pyplot()
     tasks = list(cells)
     models = list(dict.fromkeys(m for row in cells.values() for m in row))
@@ -101,6 +106,12 @@ def error_bars(cells: dict[str, dict[str, tuple[float, float | None]]], path: st
                 means.append(mean)
                 halves.append(half or 0.0)
         ax.bar(xs, means, width, yerr=halves, label=model, capsize=2)
+        marks = [(i + (j - (len(models) - 1) / 2) * width, (published or {}).get(t, {}).get(model)) for i, t in
+                 enumerate(tasks)]  # fmt: skip
+        marks = [(x, pub[0]) for x, pub in marks if pub]
+        if marks:
+            labelled = any(line.get_label() == "published" for line in ax.get_lines())
+            ax.plot(*zip(*marks), "k_", ms=12, mew=2, label=None if labelled else "published")
     ax.set_xticks(range(len(tasks)), tasks, fontsize=8)
     ax.set_yscale("log")
     ax.set_ylim(_floor([m for row in cells.values() for m, _ in row.values()], 1e-5), 30)

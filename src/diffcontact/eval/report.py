@@ -104,7 +104,7 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
     }
     lines += ["## Fig. 3: 5-step trajectory error", ""]
     if any(cells.values()):
-        plots.error_bars(cells, figures / "fig3_errors.png")
+        plots.error_bars(cells, figures / "fig3_errors.png", published.TRAJECTORY_ERROR)
         lines += ["![Fig. 3](figures/fig3_errors.png)", ""]
     lines += [
         "Sum of the relative errors of frames 0-4, mean over the test trajectories ± the 95 % interval; "
