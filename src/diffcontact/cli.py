@@ -176,6 +176,59 @@ def summarize(run: str = typer.Argument(..., help="Run directory of a finished `
     typer.echo(json.dumps({k: summary[k]["max_abs_error"] for k in ("mu", "e", "mass_ratio")}))
 
 
+@app.command("evaluate")
+def evaluate(
+    run: str = typer.Argument(..., help="Run directory of a finished `diffcontact train`."),
+    split: str = typer.Option("test", "--split", help="Dataset split: test, val or train."),
+    data: str = typer.Option("", "--data", help="Dataset root (default: the one the run was trained from)."),
+    task: str = typer.Option("", "--task", help="Refuse a run of any other task than this one."),
+    frames: int = typer.Option(None, "--frames", help="Frames rolled out (default 70, or the split's if fewer)."),
+    pictures: bool = typer.Option(True, help="Also draw the rollout picture and GIF."),
+) -> None:
+    """Metrics (5-step error, error curve, true energy) of a run's best model against the exact model; figures."""
+    from diffcontact.errors import DiffContactError
+    from diffcontact.eval.evaluate import evaluate_run
+
+    try:
+        m = evaluate_run(run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures)
+    except (DiffContactError, FloatingPointError) as err:  # (a bad run or data, a failed solve, a diverging model)
+        typer.echo(f"{type(err).__name__}: {err}", err=True)
+        raise typer.Exit(2) from err
+    err5, energy = m["trajectory_error"], m["energy"]
+    half = "n/a" if err5["ci95"] is None else f"{err5['ci95']:.3g}"
+    typer.echo(f"{m['task']} {m['model']}: {err5['steps']}-step error {err5['mean']:.4g} ± {half} (95 %, "
+               f"{m['n_trajectories']} trajectories); energy within {energy['max_rel_deviation_max']:.3%} "
+               f"over {energy['frames']} frames -> {run}/eval/")  # fmt: skip
+
+
+@app.command("reproduce")
+def reproduce(
+    tasks: list[str] = typer.Option([], "--tasks", "-t", help="Tasks (default: the 8 benchmark tasks)."),
+    models: list[str] = typer.Option([], "--models", "-m", help="Models (default: the 4 contact models, 3 baselines)."),
+    seeds: list[int] = typer.Option([0], "--seeds", "-s", help="Seeds of each (task, model)."),
+    out: str = typer.Option("reproduction", "--out", help="Folder of the runs, figures and report.md."),
+    quick: bool = typer.Option(False, "--quick", help="Tiny datasets and one epoch: the pipeline in minutes."),
+    jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process with one thread each)."),
+    data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick)."),
+) -> None:
+    """Train (or reuse) and evaluate every task x model x seed, then write OUT/report.md beside the published values.
+
+    Resumable: evaluated runs are skipped, an interrupted training continues from its last checkpoint."""
+    import sys
+
+    from diffcontact.errors import ConfigError, DatasetError
+    from diffcontact.eval.reproduce import reproduce as run_matrix
+
+    try:
+        run_matrix(
+            tasks, models, seeds, out, quick=quick, jobs=jobs, data=data or None, echo=typer.echo,
+            command=" ".join(["diffcontact", *sys.argv[1:]]),
+        )  # fmt: skip
+    except (ConfigError, DatasetError) as err:
+        typer.echo(f"{type(err).__name__}: {err}", err=True)
+        raise typer.Exit(2) from err
+
+
 @bench_app.command("near-psd")
 def bench_near_psd(
     total: int = typer.Option(100_000, "--n", help="Number of problems."),

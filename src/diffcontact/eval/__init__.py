@@ -1,0 +1,1 @@
+"""Evaluation: the published metrics on test rollouts, figures, GIFs, and the reproduction report."""

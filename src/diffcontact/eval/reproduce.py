@@ -1,0 +1,251 @@
+"""``diffcontact reproduce``: train (or reuse) and evaluate the matrix of tasks x models x seeds, then write the report.
+
+Layout of ``OUT/``: ``runs/TASK/MODEL/seedS/`` (a ``diffcontact train`` run directory, with ``eval/`` from
+``diffcontact evaluate``, ``reproduce.log`` and ``reproduce.json``), ``figures/``, ``report.md`` and
+``reproduce.json`` (the settings and the wall time of each session).  Every run is one subprocess with one thread
+(``diffcontact.eval.worker``: ``train_run`` with the default preset, then ``evaluate_run``), ``jobs`` at a time.
+It is resumable: an evaluated run is skipped, a trained one only evaluated, an interrupted training continues from
+its last checkpoint.  A model without a training entry point (the baselines until they land) and without a run is
+a row marked missing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+
+from diffcontact.config import available_tasks
+from diffcontact.errors import ConfigError
+from diffcontact.eval.files import write_json
+from diffcontact.eval.loading import registered_models
+from diffcontact.eval.published import BASELINES
+from diffcontact.models import MODEL_NAMES
+from diffcontact.systems.registry import BENCHMARK_TASKS
+
+MODELS = (*MODEL_NAMES, *BASELINES)
+# --quick: tiny datasets, one epoch, short rollouts (tests the pipeline, not the method)
+QUICK = {"n_train": 16, "n_val": 4, "n_test": 5, "frames": 30, "epochs": 1, "batch_size": 8, "eval_frames": 20}
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One (task, model, seed) of the matrix, its run directory and what is left to do: "done", "train" (then
+    evaluate), "evaluate" or "missing" (``note`` says why)."""
+
+    task: str
+    model: str
+    seed: int
+    run: Path
+    todo: str
+    note: str = ""
+
+    @property
+    def label(self) -> str:
+        return f"{self.task}/{self.model}/seed{self.seed}"
+
+
+def run_dir(out: Path, task: str, model: str, seed: int) -> Path:
+    """Where the run of (task, model, seed) lives under ``out``."""
+    return out / "runs" / task / model / f"seed{seed}"
+
+
+def evaluated(run: Path, task: str, model: str) -> dict | None:
+    """The run's eval/metrics.json if it is complete and of (task, model), else None."""
+    try:
+        metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return metrics if (metrics.get("task"), metrics.get("model")) == (task, model) else None
+
+
+def plan(out: Path, tasks: list[str], models: list[str], seeds: list[int]) -> list[Cell]:
+    """Every cell of the matrix with what is left to do, tasks outermost."""
+    cells = []
+    for task in tasks:
+        for model in models:
+            for seed in seeds:
+                run = run_dir(out, task, model, seed)
+                if evaluated(run, task, model):
+                    cells.append(Cell(task, model, seed, run, "done"))
+                elif model in MODEL_NAMES:
+                    cells.append(
+                        Cell(task, model, seed, run, "evaluate" if (run / "learned.json").is_file() else "train")
+                    )
+                elif model in registered_models() and (run / "config.json").is_file():
+                    cells.append(Cell(task, model, seed, run, "evaluate"))
+                else:
+                    why = "no loader registered" if model not in registered_models() else "no run"
+                    note = f"missing: `diffcontact train` cannot train {model} yet ({why})"
+                    cells.append(Cell(task, model, seed, run, "missing", note))
+    return cells
+
+
+def _call(cmd: list[str], log, env: dict) -> int:
+    log.write(f"$ {' '.join(cmd)}\n")
+    log.flush()
+    return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+
+
+def run_cell(cell: Cell, data: Path, quick: bool) -> dict:
+    """Train (if not trained yet) and evaluate one cell in a subprocess with one thread (``diffcontact.eval.worker``,
+    output to ``run/reproduce.log``); writes and returns ``run/reproduce.json`` ({"status": "done" | "failed",
+    "seconds"[, "error"]})."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "diffcontact.eval.worker", cell.task, cell.model, str(cell.seed), str(cell.run)]
+    cmd += [str(data), *(["--train"] if cell.todo == "train" else [])]
+    if quick:
+        cmd += ["--epochs", str(QUICK["epochs"]), "--batch-size", str(QUICK["batch_size"])]
+        cmd += ["--frames", str(QUICK["eval_frames"])]
+    cell.run.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(cell.run / "reproduce.log", "a") as log:
+        log.write(f"$ {' '.join(cmd)}\n")
+        log.flush()
+        code = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+    record = {"status": "done" if code == 0 else "failed", "seconds": time.perf_counter() - t0}
+    if code:
+        record["error"] = f"exited with {code}; see {cell.run / 'reproduce.log'}"
+    write_json(cell.run / "reproduce.json", record)
+    return record
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+
+
+class Progress:
+    """Which runs are going, how many are done, and the time left estimated from the runs finished so far."""
+
+    def __init__(self, total: int, done: int, jobs: int, echo: Callable[[str], None]):
+        self.total, self.done, self.jobs, self.echo = total, done, jobs, echo
+        self.started = time.perf_counter()
+        self.running: dict[str, float] = {}
+        self.durations: list[float] = []
+        self.lock = threading.Lock()
+
+    def start(self, label: str) -> None:
+        with self.lock:
+            self.running[label] = time.perf_counter()
+        self.show()
+
+    def finish(self, label: str, status: str) -> None:
+        with self.lock:
+            self.durations.append(time.perf_counter() - self.running.pop(label))
+            self.done += 1
+        self.echo(f"{label}: {status} in {_duration(self.durations[-1])}")
+        self.show()
+
+    def left(self) -> float | None:
+        """Estimated seconds left: the mean run time of this session over the runs not finished, spread over jobs."""
+        if not self.durations:
+            return None
+        mean, now = sum(self.durations) / len(self.durations), time.perf_counter()
+        pending = self.total - self.done - len(self.running)
+        busy = sum(max(mean - (now - t), 0.0) for t in self.running.values())
+        return (pending * mean + busy) / self.jobs
+
+    def show(self) -> None:
+        with self.lock:
+            now = time.perf_counter()
+            going = ", ".join(f"{k} ({_duration(now - t)})" for k, t in self.running.items()) or "none"
+            left = self.left()
+        eta = "unknown until a run finishes" if left is None else f"about {_duration(left)}"
+        self.echo(
+            f"[{self.done}/{self.total} done] running: {going}; elapsed {_duration(now - self.started)}; left: {eta}"
+        )
+
+
+def _settings_file(out: Path, quick: bool) -> dict:
+    """OUT/reproduce.json, checked to be of the same mode (quick or full: their runs must not mix)."""
+    path = out / "reproduce.json"
+    if path.is_file():
+        saved = json.loads(path.read_text())
+        if saved.get("quick") != quick:
+            mode = "quick" if saved.get("quick") else "full"
+            raise ConfigError(
+                f"{out} holds a {mode} reproduction: give another --out for a {'quick' if quick else 'full'} one"
+            )
+        return saved
+    return {"quick": quick, "sessions": []}
+
+
+def reproduce(
+    tasks: list[str] | None = None,
+    models: list[str] | None = None,
+    seeds: list[int] | None = None,
+    out: str | Path = "reproduction",
+    *,
+    quick: bool = False,
+    jobs: int = 1,
+    data: str | Path | None = None,
+    progress_every: float = 60.0,
+    echo: Callable[[str], None] = print,
+    command: str = "",
+) -> Path:
+    """Generate the datasets where missing, train and evaluate every cell not done yet (``jobs`` at a time), then
+    write OUT/report.md (:func:`diffcontact.eval.report.write_report`).  Returns the report's path.
+
+    ``data``: dataset root (default ``data``, or OUT/data with ``quick``).  ``progress_every``: seconds between
+    progress lines while runs are going (one is also printed whenever a run starts or ends).
+    """
+    from diffcontact.data.generate import generate_dataset
+    from diffcontact.eval.report import write_report
+
+    tasks, models, seeds = list(tasks or BENCHMARK_TASKS), list(models or MODELS), list(seeds or [0])
+    for task in tasks:
+        if task not in available_tasks():
+            raise ConfigError(f"task {task!r} is not one of {available_tasks()}")
+    known = sorted({*MODELS, *registered_models()})
+    for model in models:
+        if model not in known:
+            raise ConfigError(f"model {model!r} is not one of {known}")
+    if jobs < 1:
+        raise ConfigError(f"jobs = {jobs} is not >= 1")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = _settings_file(out, quick)
+    data = Path(data) if data else (out / "data" if quick else Path("data"))
+    started, began = time.perf_counter(), time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+    sizes = {k: QUICK[k] for k in ("n_train", "n_val", "n_test", "frames")} if quick else {}
+    for task in tasks:
+        generate_dataset(task, data, progress=False, echo=echo, **sizes)
+    cells = plan(out, tasks, models, seeds)
+    todo = [c for c in cells if c.todo in ("train", "evaluate")]
+    for c in cells:
+        if c.todo == "missing":
+            echo(f"{c.label}: {c.note}")
+    done = sum(c.todo == "done" for c in cells)
+    progress = Progress(len(todo) + done, done, jobs, echo)
+
+    def job(cell: Cell) -> dict:
+        progress.start(cell.label)
+        try:
+            record = run_cell(cell, data, quick)
+        except Exception as err:  # (an OS error starting a subprocess: the other runs go on)
+            record = {"status": "failed", "error": f"{type(err).__name__}: {err}"}
+        progress.finish(cell.label, record["status"] + (f" ({record['error']})" if "error" in record else ""))
+        return record
+
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        pending = {pool.submit(job, c) for c in todo}
+        while pending:
+            finished, pending = wait(pending, timeout=progress_every, return_when=FIRST_COMPLETED)
+            if pending and not finished:  # (a start or an end shows the progress itself)
+                progress.show()
+    settings["sessions"].append(
+        {"started": began, "seconds": time.perf_counter() - started, "runs": len(todo), "command": command}
+    )
+    settings["data"] = str(data)
+    write_json(out / "reproduce.json", settings)
+    report = write_report(out, tasks, models, seeds, settings)
+    echo(f"report: {report}")
+    return report

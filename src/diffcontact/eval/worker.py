@@ -1,0 +1,54 @@
+"""One cell of ``diffcontact reproduce`` in its own process: train (``diffcontact.train.run.train_run``, the default
+preset, resuming from the run's last checkpoint if there is one) unless already trained, then evaluate.
+
+    python -m diffcontact.eval.worker TASK MODEL SEED RUN_DIR DATA_ROOT [--train] [--epochs E] [--batch-size B]
+                                      [--frames T]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m diffcontact.eval.worker", description=__doc__.split("\n\n")[0])
+    p.add_argument("task")
+    p.add_argument("model")
+    p.add_argument("seed", type=int)
+    p.add_argument("run", type=Path)
+    p.add_argument("data", type=Path)
+    p.add_argument("--train", action="store_true", help="Train first (resuming from checkpoints/last.ckpt).")
+    p.add_argument("--epochs", type=int, default=None, help="Epochs (default: the preset's).")
+    p.add_argument("--batch-size", type=int, default=None, help="Chunks per batch (default: the preset's).")
+    p.add_argument("--frames", type=int, default=None, help="Frames rolled out in the evaluation.")
+    args = p.parse_args(argv)
+
+    from diffcontact.errors import DiffContactError
+    from diffcontact.eval.evaluate import evaluate_run
+    from diffcontact.train.run import train_run
+
+    try:
+        if args.train:
+            settings = dict(
+                seed=args.seed, out=args.run, data_root=args.data, epochs=args.epochs, batch_size=args.batch_size
+            )
+            resume = (args.run / "checkpoints" / "last.ckpt").is_file()
+            try:
+                train_run(args.task, args.model, resume=resume, progress=False, **settings)
+            except Exception as err:  # (a checkpoint damaged by the interruption: train afresh, once)
+                if not resume:
+                    raise
+                print(f"resuming failed ({type(err).__name__}: {err}); training from the start", flush=True)
+                train_run(args.task, args.model, progress=False, **settings)
+        m = evaluate_run(args.run, task=args.task, data_root=args.data, frames=args.frames)
+    except (DiffContactError, FloatingPointError) as err:
+        print(f"{type(err).__name__}: {err}", file=sys.stderr)
+        return 2
+    print(f"{args.task} {args.model} seed {args.seed}: 5-step error {m['trajectory_error']['mean']:.4g}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

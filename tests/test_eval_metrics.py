@@ -1,0 +1,86 @@
+"""The published trajectory metrics (spec F.1) against values computed by hand on tiny arrays."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.eval.metrics import (
+    energy_deviation,
+    error_curve,
+    mean_interval,
+    relative_error,
+    trajectory_error,
+    true_energy,
+)
+
+
+def _traj(values):  # (N, T, P=1, d) from nested lists (N, T, d)
+    return torch.tensor(values, dtype=torch.float64)[:, :, None, :]
+
+
+def test_relative_error_by_hand():
+    # one trajectory, 2 frames, 1 point in 2-D: z_1 = (x, v) = (3, 0, 0, 4), ‖z_1‖ = 5
+    x = _traj([[[1.0, 0.0], [3.0, 0.0]]])
+    v = _traj([[[0.0, 1.0], [0.0, 4.0]]])
+    x_hat = _traj([[[1.0, 0.0], [3.0, 3.0]]])  # off by 3 in one position entry
+    v_hat = _traj([[[0.0, 1.0], [0.0, 0.0]]])  # off by 4 in one velocity entry
+    rel = relative_error(x_hat, v_hat, x, v)
+    assert rel.shape == (1, 2)
+    assert rel[0, 0] == 0.0  # the initial state is given
+    assert rel[0, 1].item() == pytest.approx(math.sqrt(9 + 16) / 5)
+
+
+def test_relative_error_refuses_nan_zero_truth_and_shape_mismatch():
+    x = _traj([[[1.0, 0.0], [2.0, 0.0]]])
+    v = torch.zeros_like(x)
+    bad = x.clone()
+    bad[0, 1, 0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match="trajectory 0, frame 1"):
+        relative_error(bad, v, x, v)
+    with pytest.raises(ValueError, match="frame 0 is zero"):
+        relative_error(x, v, torch.zeros_like(x), v)
+    with pytest.raises(ValueError, match="shapes differ"):
+        relative_error(x[:, :1], v, x, v)
+
+
+def test_trajectory_error_sums_the_first_five_frames():
+    rel = torch.tensor([[0.0, 0.1, 0.2, 0.3, 0.4, 0.5], [0.0, 1.0, 1.0, 1.0, 1.0, 9.0]], dtype=torch.float64)
+    assert trajectory_error(rel).tolist() == pytest.approx([1.0, 4.0])
+    assert trajectory_error(rel, steps=2).tolist() == pytest.approx([0.1, 1.0])
+    with pytest.raises(ValueError, match="steps = 7 is not in"):
+        trajectory_error(rel, steps=7)
+
+
+def test_mean_interval_student_t():
+    mean, half = mean_interval(torch.tensor([1.0, 2.0, 3.0]))
+    # std 1, sem 1/√3, t_{0.975, 2} = 4.302652729911275 (tables)
+    assert mean == pytest.approx(2.0) and half == pytest.approx(4.302652729911275 / math.sqrt(3))
+    assert mean_interval(torch.tensor([5.0])) == (5.0, None)
+    with pytest.raises(ValueError, match="no values"):
+        mean_interval(torch.tensor([]))
+
+
+def test_error_curve_averages_over_trajectories():
+    rel = torch.tensor([[0.0, 1.0, 3.0], [0.0, 3.0, 5.0]], dtype=torch.float64)
+    assert error_curve(rel, frames=2).tolist() == [0.0, 2.0]
+    assert error_curve(rel, frames=3).tolist() == [0.0, 2.0, 4.0]
+    with pytest.raises(ValueError, match="frames = 4 is not in"):
+        error_curve(rel, frames=4)
+
+
+def test_true_energy_of_a_falling_point_mass_and_its_deviation():
+    task = dc.build_task("BP1")  # one point mass m = 0.1 kg, g = 9.81 m/s² along −y
+    x = _traj([[[0.5, 0.2], [0.5, 0.3]]])
+    v = _traj([[[1.0, 2.0], [0.0, 0.0]]])
+    energy = true_energy(task, x, v)
+    assert energy.shape == (1, 2)
+    # ½ m |v|² + m g y
+    assert energy[0].tolist() == pytest.approx([0.5 * 0.1 * 5 + 0.1 * 9.81 * 0.2, 0.1 * 9.81 * 0.3])
+    dev = energy_deviation(energy + torch.tensor([[0.0, 0.01]], dtype=torch.float64), energy)
+    assert dev[0].tolist() == pytest.approx([0.0, 0.01 / energy[0, 0].item()])
+    with pytest.raises(ValueError, match="initial energy of trajectory 0 is 0 J"):
+        energy_deviation(energy, torch.zeros_like(energy))

@@ -1,0 +1,95 @@
+"""`diffcontact reproduce --quick` end to end, killed after its first run and resumed: the report has every section,
+missing models are rows marked missing, and the finished run is not redone."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from diffcontact.errors import ConfigError
+from diffcontact.eval.reproduce import Progress, reproduce, run_dir
+
+TASKS, MODELS = ["BP5-e", "BP5"], ["CM-CD-CLNN", "MLP-CD-CLNN"]
+
+
+@pytest.fixture(scope="module")
+def resumed(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reproduce") / "out"
+    args = ["reproduce", "--quick", "--out", str(out), "--jobs", "1"]
+    args += [a for t in TASKS for a in ("--tasks", t)] + [a for m in MODELS for a in ("--models", m)]
+    env = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "diffcontact.cli", *args],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+        start_new_session=True,  # (its own process group: the kill reaches its workers too)
+    )
+    first = run_dir(out, "BP5-e", "CM-CD-CLNN", 0)
+    deadline = time.monotonic() + 600
+    while not (first / "eval" / "metrics.json").is_file() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (first / "eval" / "metrics.json").is_file(), "the first run did not finish"
+    second = run_dir(out, "BP5", "CM-CD-CLNN", 0)
+    killed = {"report": (out / "report.md").is_file(), "second": (second / "eval" / "metrics.json").is_file()}
+    stamps = {p: p.stat().st_mtime_ns for p in (first / "eval" / "metrics.json", first / "learned.json")}
+    lines: list[str] = []
+    report = reproduce(TASKS, MODELS, [0], out, quick=True, jobs=1, echo=lines.append, command="test")
+    return out, report, killed, stamps, lines
+
+
+def test_a_killed_reproduction_resumes_without_redoing_finished_runs(resumed):
+    out, report, killed, stamps, lines = resumed
+    assert not killed["report"] and not killed["second"]  # (killed after the first run, before the second ended)
+    assert all(p.stat().st_mtime_ns == t for p, t in stamps.items())  # the first run: neither trained nor evaluated
+    assert lines[-1] == f"report: {report}"
+    assert any(line.startswith("[1/2 done] running: BP5/CM-CD-CLNN/seed0") for line in lines)
+    assert not any(line.startswith("BP5-e/CM-CD-CLNN/seed0: done") for line in lines)
+    assert any(line.startswith("BP5/CM-CD-CLNN/seed0: done in") for line in lines)
+    assert (run_dir(out, "BP5", "CM-CD-CLNN", 0) / "eval" / "rollout.gif").is_file()
+
+
+def test_the_quick_report_has_every_section_and_marks_missing_runs(resumed):
+    out, report, *_ = resumed
+    text = report.read_text()
+    for heading in (
+        "## Runs",
+        "## Table 2",
+        "## Per-slot μ and e",
+        "### BP5: learned μ per contact slot",
+        "## Learned mass ratios",
+        "## Fig. 3",
+        "## Fig. 4",
+        "## Fig. 5",
+        "## Rollouts",
+    ):
+        assert heading in text, heading
+    assert "| BP5-e (0, 1) |" in text and "/ 0, 1 |" in text  # Table 2 beside the published values
+    assert "(published 2.34e-05 ± 1.3e-05)" in text
+    for task in TASKS:
+        assert f"| {task} | MLP-CD-CLNN | 0 | missing" in text
+        assert f"| {task} | CM-CD-CLNN | 0 | done |" in text
+        assert (out / "figures" / f"rollout_{task}.png").stat().st_size > 0
+    for name in ("fig3_errors.png", "fig4_curves.png", "fig5_energy.png"):
+        assert (out / "figures" / name).stat().st_size > 0
+        assert f"](figures/{name})" in text
+    with pytest.raises(ConfigError, match="holds a quick reproduction: give another --out for a full one"):
+        reproduce(TASKS, MODELS, [0], out, quick=False)
+
+
+def test_bad_arguments_and_the_time_left():
+    with pytest.raises(ConfigError, match="model 'XX' is not one of"):
+        reproduce(["BP5"], ["XX"])
+    with pytest.raises(ConfigError, match="task 'NOPE' is not one of"):
+        reproduce(["NOPE"])
+    progress = Progress(total=4, done=0, jobs=2, echo=lambda _: None)
+    assert progress.left() is None
+    progress.durations, progress.done = [10.0, 20.0], 2
+    assert progress.left() == pytest.approx(2 * 15.0 / 2)  # (2 runs to go, 15 s each, 2 at a time)
