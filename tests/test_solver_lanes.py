@@ -5,13 +5,19 @@ moves the last iterates by about 1e-9."""
 
 from __future__ import annotations
 
+import ctypes
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
 from solver_oracle import random_instance
 
-from diffcontact.solver import ipm, lanes, scaling
+from diffcontact.solver import ipm, lanes, scaling, status
 from diffcontact.solver.exact import contact_dims
+from diffcontact.solver.status import Status
 
 
 def _standard_form(K, d, B, seed):
@@ -42,7 +48,7 @@ def test_lane_widths_agree(d, K, restore_width):
         res = ipm.solve_ipm(*data, d, tol=1e-8, polish_steps=0, trace=trace)  # the iterates alone
         results[width] = (res, trace)
     ref, ref_trace = results[lanes.supported_widths()[0]]
-    assert (ref.status == ipm.CONVERGED).all()
+    assert (ref.status == Status.CONVERGED).all()
     assert ref.iterations[0] == 0 and (ref.z[0] == 0).all()
     assert (ref_trace[1:, 0, 2] > 0).all()  # the trace holds the gap of the first iterate
     for res, trace in results.values():
@@ -63,6 +69,31 @@ def test_bad_environment_variable_is_named(monkeypatch, restore_width):
     monkeypatch.setenv("DIFFCONTACT_LANES", "wide")
     with pytest.raises(ValueError, match="DIFFCONTACT_LANES='wide'"):
         lanes.select_width()
+
+
+def test_bad_environment_variable_does_not_break_the_import():
+    """The width is chosen on first use: the import succeeds and the first solve names the variable."""
+    code = (
+        "import torch, diffcontact\n"
+        "try:\n"
+        "    diffcontact.solve_cone_qp(torch.eye(2)[None], -torch.ones(1, 2), torch.ones(1, 1))\n"
+        "except ValueError as e:\n"
+        "    print(e)\n"
+    )
+    env = {**os.environ, "DIFFCONTACT_LANES": "wide"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert "DIFFCONTACT_LANES='wide': not a lane width" in out.stdout
+
+
+def test_python_and_kernel_agree_on_the_shared_facts():
+    """Status codes, failure rule, weak-cone threshold and struct sizes: csrc/api.h against the Python copies."""
+    got = lanes._lib.diffcontact_constants().contents
+    assert {s.name: int(s) for s in Status} == {s.name: getattr(got, s.name.lower()) for s in Status}
+    assert got.first_failure == status.FIRST_FAILURE == Status.MAX_ITER
+    assert got.weak_tol == status.WEAK_TOL == 1e-6
+    assert got.solve_args_size == ctypes.sizeof(lanes.SolveArgs)
+    assert got.adjoint_args_size == ctypes.sizeof(lanes.AdjointArgs)
+    assert [bool(status.is_failure(s)) for s in Status] == [False, False, True, True, True]
 
 
 @pytest.mark.parametrize("d", [2, 3])

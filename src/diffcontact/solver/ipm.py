@@ -24,9 +24,7 @@ import numpy as np
 import torch
 
 from diffcontact.solver import lanes
-
-# per-element status codes, the same in the compiled kernel (csrc/ipm_lanes.hpp)
-CONVERGED, INACCURATE, MAX_ITER, NUMERICAL, UNBOUNDED = 0, 1, 2, 3, 4
+from diffcontact.solver.status import Status
 
 IPM_TOL = 1e-5  # the interior-point method's target before polishing (measured fastest in 1e-8 … 1e-3)
 
@@ -39,7 +37,7 @@ class IPMResult:
     """Solution, status, and what the backward pass needs.  Shapes: B batch, K contacts, n = K·d."""
 
     z: torch.Tensor  # (B, n)
-    status: torch.Tensor  # (B,) int64, codes above
+    status: torch.Tensor  # (B,) int64, ``Status`` codes
     iterations: torch.Tensor  # (B,) int64
     residual: torch.Tensor  # (B,) scaled KKT residual of the returned iterate
     P: torch.Tensor  # (B, n, n)
@@ -94,26 +92,25 @@ def solve_ipm(
     elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
         raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
     idx = np.arange(B, dtype=np.int64)
-    again = np.zeros(B, dtype=np.bool_)
     passes = 2 if polish_steps > 0 and tol < IPM_TOL else 1
     for attempt in range(passes):
+        last = attempt == passes - 1
         lanes.solve(
             *data,
             d,
             idx,
-            tol_ipm=max(tol, IPM_TOL) if polish_steps > 0 and attempt == 0 else tol,
-            tol=tol,
-            acc_tol=acceptable_tol,
+            ipm_tol=max(tol, IPM_TOL) if polish_steps > 0 and attempt == 0 else tol,
+            final_tol=tol if last else min(tol, 1e-13),
+            acceptable_tol=acceptable_tol,
             max_iter=max_iter,
-            margin=start_margin,
+            start_margin=start_margin,
             refine_tol=IPM_TOL,
             polish_steps=polish_steps,
-            last=attempt == passes - 1,
             out=out,
-            again=again,
             trace=trace,
         )
-        idx = idx[again[idx]]
+        status = out[5][idx]
+        idx = idx[(status == Status.INACCURATE) | (status == Status.MAX_ITER)]
         if not len(idx):
             break
     z, s_l, lam_l, s_q, lam_q, status, iterations, residual = (torch.from_numpy(a) for a in out)

@@ -11,26 +11,101 @@ the environment variable ``DIFFCONTACT_LANES`` (8, 4 or 2) forces one that the C
 from __future__ import annotations
 
 import ctypes
+import importlib.machinery
 import os
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numba
 import numpy as np
 
-from diffcontact.solver import _lanes
+from diffcontact.solver.status import FIRST_FAILURE, WEAK_TOL, Status
 
-_lib = ctypes.CDLL(_lanes.__file__)
-_lib.diffcontact_ipm_supported.restype = ctypes.c_int
-_lib.diffcontact_ipm_select.restype = ctypes.c_int
-_lib.diffcontact_ipm_select.argtypes = [ctypes.c_int]
-_lib.diffcontact_ipm_width.restype = ctypes.c_int
-_solve = _lib.diffcontact_ipm_solve
-_solve.restype = ctypes.c_int
-_P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-_solve.argtypes = [_P] * 5 + [_I, _I, _P, _I, _D, _D, _D, _I, _D, _D, _I, _I] + [_P] * 10 + [_I]
-_adjoint = _lib.diffcontact_adjoint_solve
-_adjoint.restype = ctypes.c_int
-_adjoint.argtypes = [_P] * 7 + [_I, _I, _P, _I, _I, _P, _P, _P]
+_i64, _f64, _ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+
+
+class SolveArgs(ctypes.Structure):
+    """``struct SolveArgs`` of ``csrc/api.h`` (field by field, the same names; pointers as addresses)."""
+
+    _fields_ = [
+        *((name, _ptr) for name in ("P", "c", "lower", "on", "on_l")),
+        ("K", _i64),
+        ("d", _i64),
+        ("idx", _ptr),
+        ("ipm_tol", _f64),
+        ("final_tol", _f64),
+        ("acceptable_tol", _f64),
+        ("max_iter", _i64),
+        ("start_margin", _f64),
+        ("refine_tol", _f64),
+        ("polish_steps", _i64),
+        *((name, _ptr) for name in ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")),
+        ("trace", _ptr),
+        ("T", _i64),
+    ]
+
+
+class AdjointArgs(ctypes.Structure):
+    """``struct AdjointArgs`` of ``csrc/api.h``."""
+
+    _fields_ = [
+        *((name, _ptr) for name in ("P", "s_l", "lam_l", "s_q", "lam_q", "on", "on_l")),
+        ("K", _i64),
+        ("d", _i64),
+        *((name, _ptr) for name in ("g", "u", "v_l", "ok")),
+    ]
+
+
+class _Constants(ctypes.Structure):
+    """``struct Constants`` of ``csrc/api.h``: what is checked on loading."""
+
+    _fields_ = [
+        *((name, _i64) for name in ("api_version", "solve_args_size", "adjoint_args_size")),
+        *((name, _i64) for name in ("converged", "inaccurate", "max_iter", "numerical", "unbounded", "first_failure")),
+        ("weak_tol", _f64),
+    ]
+
+
+API_VERSION = 2
+
+
+def _load() -> ctypes.CDLL:
+    """The kernel's shared library (built by ``setup.py`` as ``_lanes`` with the extension suffix)."""
+    here = Path(__file__).parent
+    paths = [here / f"_lanes{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES]
+    path = next((p for p in paths if p.exists()), None)
+    build = "build it with `pip install -e .` or `python setup.py build_ext --inplace`"
+    if path is None:
+        raise ImportError(f"the contact solver's compiled kernel is missing from {here}: {build}")
+    lib = ctypes.CDLL(str(path))
+    if not hasattr(lib, "diffcontact_constants"):
+        raise ImportError(f"{path} is a stale build of the contact solver's kernel: {build}")
+    lib.diffcontact_constants.restype = ctypes.POINTER(_Constants)
+    got = lib.diffcontact_constants().contents
+    got = {name: getattr(got, name) for name, _ in _Constants._fields_}
+    want = {
+        "api_version": API_VERSION,
+        "solve_args_size": ctypes.sizeof(SolveArgs),
+        "adjoint_args_size": ctypes.sizeof(AdjointArgs),
+        **{status.name.lower(): int(status) for status in Status},
+        "first_failure": int(FIRST_FAILURE),
+        "weak_tol": WEAK_TOL,
+    }
+    if got != want:
+        raise ImportError(f"{path} disagrees with lanes.py (a stale build?): kernel {got}, Python {want}; {build}")
+    lib.diffcontact_ipm_supported.restype = ctypes.c_int
+    lib.diffcontact_ipm_select.restype = ctypes.c_int
+    lib.diffcontact_ipm_select.argtypes = [ctypes.c_int]
+    lib.diffcontact_ipm_width.restype = ctypes.c_int
+    lib.diffcontact_ipm_solve.restype = ctypes.c_int
+    lib.diffcontact_ipm_solve.argtypes = [ctypes.POINTER(SolveArgs), _i64, _i64]
+    lib.diffcontact_adjoint_solve.restype = ctypes.c_int
+    lib.diffcontact_adjoint_solve.argtypes = [ctypes.POINTER(AdjointArgs), _i64, _i64]
+    return lib
+
+
+_lib = _load()
+_width: int | None = None  # chosen on first use (a bad DIFFCONTACT_LANES must not break the import)
 
 
 def supported_widths() -> list[int]:
@@ -42,6 +117,7 @@ def supported_widths() -> list[int]:
 def select_width(width: int | None = None) -> int:
     """Use the kernel of this lane width (None: ``DIFFCONTACT_LANES`` if set, else the widest this CPU runs);
     returns it."""
+    global _width
     source = f"lane width {width}"
     if width is None:
         env = os.environ.get("DIFFCONTACT_LANES", "")
@@ -49,15 +125,14 @@ def select_width(width: int | None = None) -> int:
         width = int(env) if env.strip().isdigit() else (supported_widths()[0] if not env else -1)
     if width not in (8, 4, 2) or not _lib.diffcontact_ipm_select(width):
         raise ValueError(f"{source}: not a lane width this CPU runs; choose one of {supported_widths()}")
+    _width = width
     return width
 
 
 def current_width() -> int:
-    """The lane width in use."""
-    return _lib.diffcontact_ipm_width()
+    """The lane width in use (chosen by ``select_width()`` on first use)."""
+    return _width if _width is not None else select_width()
 
-
-select_width()
 
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
@@ -91,47 +166,58 @@ def _check(rc: int, K: int) -> None:
         raise RuntimeError(f"contact solver kernel failed (code {rc})")
 
 
+def _address(a: np.ndarray) -> int:
+    return a.ctypes.data
+
+
 def solve(
     P,
     c,
-    low,
+    lower,
     on,
-    onl,
+    on_l,
     d: int,
     idx,
     *,
-    tol_ipm,
-    tol,
-    acc_tol,
+    ipm_tol,
+    final_tol,
+    acceptable_tol,
     max_iter,
-    margin,
+    start_margin,
     refine_tol,
     polish_steps,
-    last,
     out,
-    again,
     trace,
 ) -> None:
-    """Interior-point method to ``tol_ipm``, then (``polish_steps`` > 0) polishing, of the batch elements ``idx``.
+    """Interior-point method to ``ipm_tol``, then (``polish_steps`` > 0) polishing, of the batch elements ``idx``
+    (``SolveArgs``: the names and meanings are those of ``csrc/api.h``).
 
-    P: (B, n, n), c: (B, n), low: (B, K) float64; on, onl: (B, K) bool; idx: (m,) int64 (all C-contiguous);
+    P: (B, n, n), c: (B, n), lower: (B, K) float64; on, on_l: (B, K) bool; idx: (m,) int64 (all C-contiguous);
     out: the tuple (z (B, n), s_l, lam_l (B, K), s_q, lam_q (B, K, d), status, iterations (B,) int64, residual
-    (B,)) written at the rows ``idx``; again: (B,) bool, set where an element did not converge to rounding level
-    and ``last`` is False (see ``ipm.solve_ipm``); trace: (B, T, 4) (T may be 0).
+    (B,)) written at the rows ``idx``; trace: (B, T, 4) (T may be 0).
     """
-    K = low.shape[1]
-    ptr = [a.ctypes.data for a in (P, c, low, on, onl)]
-    optr = [a.ctypes.data for a in out] + [again.ctypes.data, trace.ctypes.data]
-    opts = (tol_ipm, tol, acc_tol, max_iter, margin, refine_tol, polish_steps, int(last))
+    K = lower.shape[1]
+    args = SolveArgs(
+        *map(_address, (P, c, lower, on, on_l)),
+        K,
+        d,
+        _address(idx),
+        ipm_tol,
+        final_tol,
+        acceptable_tol,
+        max_iter,
+        start_margin,
+        refine_tol,
+        polish_steps,
+        *map(_address, out),
+        _address(trace),
+        trace.shape[1],
+    )
+    ref = ctypes.byref(args)
+    parallel(lambda start, stop: _check(_lib.diffcontact_ipm_solve(ref, start, stop), K), len(idx))
 
-    def run(start, stop):
-        part = idx[start:stop]
-        _check(_solve(*ptr, K, d, part.ctypes.data, len(part), *opts, *optr, trace.shape[1]), K)
 
-    parallel(run, len(idx))
-
-
-def adjoint(P, s_l, lam_l, s_q, lam_q, on, onl, d: int, g):
+def adjoint(P, s_l, lam_l, s_q, lam_q, on, on_l, d: int, g):
     """Solve Kᵀ[u; v] = [g; 0] per element (``implicit.py``), the weakly active cones of singular elements taken
     as inactive.  Arrays as in ``solve`` (C-contiguous), g: (B, n).  Returns u: (B, n), the rays' v: (B, K) and
     ok: (B,) bool (False where K is singular even so)."""
@@ -139,10 +225,7 @@ def adjoint(P, s_l, lam_l, s_q, lam_q, on, onl, d: int, g):
     u = np.empty((B, K * d))
     v_l = np.empty((B, K))
     ok = np.empty(B, dtype=np.bool_)
-    ptr = [a.ctypes.data for a in (P, s_l, lam_l, s_q, lam_q, on, onl)]
-
-    def run(start, stop):
-        _check(_adjoint(*ptr, K, d, g.ctypes.data, start, stop, u.ctypes.data, v_l.ctypes.data, ok.ctypes.data), K)
-
-    parallel(run, B)
+    args = AdjointArgs(*map(_address, (P, s_l, lam_l, s_q, lam_q, on, on_l)), K, d, *map(_address, (g, u, v_l, ok)))
+    ref = ctypes.byref(args)
+    parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(ref, start, stop), K), B)
     return u, v_l, ok

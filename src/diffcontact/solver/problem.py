@@ -13,7 +13,6 @@ under them), so they carry no gradient; D carries the gradient with respect to Î
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 from typing import Literal
 
 import numpy as np
@@ -23,16 +22,7 @@ from diffcontact.errors import ContactSolverError
 from diffcontact.solver import flat, ipm, scaling
 from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.implicit import ImplicitConeQP, ScaledSolution
-
-
-class Status(IntEnum):
-    """Per-element solver status."""
-
-    CONVERGED = ipm.CONVERGED  #: residuals below ``tol``
-    INACCURATE = ipm.INACCURATE  #: iteration limit, residuals below ``acceptable_tol`` (usable, not an error)
-    MAX_ITER = ipm.MAX_ITER  #: iteration limit with large residuals (failure)
-    NUMERICAL = ipm.NUMERICAL  #: non-finite values or a failed factorisation (failure)
-    UNBOUNDED = ipm.UNBOUNDED  #: the objective is unbounded below on the cones (failure)
+from diffcontact.solver.status import Status, is_failure
 
 
 @dataclass
@@ -49,7 +39,7 @@ class SolverInfo:
     @property
     def failed(self) -> torch.Tensor:
         """(B,) bool: elements whose solution is not usable (returned as zeros)."""
-        return self.status >= Status.MAX_ITER
+        return is_failure(self.status)
 
     @property
     def n_failed(self) -> int:
@@ -187,7 +177,7 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     f, status = flat.minimum_norm(f, flats, mu, lower, active, d, _cone_qp(mu, lower, active, d, opts), sel=treated)
     result.status[flats.idx[treated]] = torch.maximum(result.status[flats.idx[treated]], status)
     # (a failed element's zeros may have been moved along its flat directions)
-    return torch.where((result.status >= Status.MAX_ITER)[:, None], torch.zeros_like(f), f), result
+    return torch.where(is_failure(result.status)[:, None], torch.zeros_like(f), f), result
 
 
 def _cone_qp(mu, lower, active, d, opts):
@@ -206,14 +196,14 @@ def _solve_differentiable(A, q, mu, lower, active, d, tol, acceptable_tol, max_i
     B = q.shape[0]
     with torch.no_grad():
         sol, result = _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter)
-    failed = result.status >= Status.MAX_ITER
-    if failed.any() and on_failure == "raise":
-        codes = {int(s): Status(int(s)).name for s in result.status[failed].unique()}
+    bad = is_failure(result.status)
+    if bad.any() and on_failure == "raise":
+        codes = {int(s): Status(int(s)).name for s in result.status[bad].unique()}
         raise ContactSolverError(
-            f"contact solver failed for {int(failed.sum())} of {B} batch elements {_first(failed)} "
+            f"contact solver failed for {int(bad.sum())} of {B} batch elements {_first(bad)} "
             f"(status {codes}); pass on_failure='count' to continue with zero impulses for them",
             status=result.status,
-            failed=failed.nonzero().flatten().tolist(),
+            failed=bad.nonzero().flatten().tolist(),
         )
     if not A.dtype.is_floating_point:
         A = A.to(torch.float64)
@@ -259,8 +249,7 @@ def _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter) -> tuple[S
         if len(idx):
             gamma[idx] = gamma2[idx]
             lower_scale[idx] *= ratio[idx]
-    failed = result.status >= Status.MAX_ITER
-    z = torch.where(failed[:, None], torch.zeros_like(result.z), result.z)
+    z = torch.where(is_failure(result.status)[:, None], torch.zeros_like(result.z), result.z)
     slide = torch.zeros_like(sigma)
     if d > 1 and zero_mu.any():
         z, speed = _frictionless_slide_limit(z, A64, q64, T, gamma, zero_mu, d)

@@ -57,12 +57,12 @@ struct Exact {
 };
 
 // A ray / cone whose multiplier is negligible next to its slack (exact._weak_ray, exact._weak_cone).
-static inline M weak_ray(V s, V lam) { return lam <= 1e-6 * vmax(splat(1.0), vabs(s)); }
+static inline M weak_ray(V s, V lam) { return lam <= WEAK_TOL * vmax(splat(1.0), vabs(s)); }
 template <int D>
 static inline M weak_cone(const V* s, const V* lam) {
   V ns = splat(0.0), nl = splat(0.0);
   for (int i = 0; i < D; i++) ns += s[i] * s[i], nl += lam[i] * lam[i];
-  return vsqrt(nl) <= 1e-6 * vmax(splat(1.0), vsqrt(ns));
+  return vsqrt(nl) <= WEAK_TOL * vmax(splat(1.0), vsqrt(ns));
 }
 
 // Exact KKT residuals (complementarity s∘λ = 0) at (z, s, λ) into r_*, comp_*; returns their max relative to

@@ -14,9 +14,6 @@ namespace NS {
 
 typedef double V __attribute__((vector_size(8 * LANES)));
 typedef long long M __attribute__((vector_size(8 * LANES)));
-typedef long long i64;
-
-enum { CONVERGED = 0, INACCURATE = 1, MAX_ITER = 2, NUMERICAL = 3, UNBOUNDED = 4 };
 
 static inline V splat(double x) { return V{} + x; }
 static inline V vsqrt(V x) {
@@ -272,19 +269,12 @@ static V worst(const Work<D>& w, double sign) {
   return r;
 }
 
-struct Options {
-  double tol, acc_tol, margin, refine_tol;  // tol: the interior-point method's target
-  i64 max_iter;
-  double final_tol;  // what counts as converged after polishing
-  int polish_steps;  // at most this many factorisations per polishing pass (0: none)
-  bool last;         // the last pass: no element is marked for another one
-};
-
 // One group; its data gathered into w (P, c, onl, on and low in h_l as −low).  Writes the best iterate to the
 // w.*b arrays and status / iterations / residual per lane; trace[l] (T × 4 per lane, or null).
 template <int D>
-static void solve_group(Work<D>& w, const Options& o, i64* status, i64* iters_out, double* res_out,
-                        double* const* trace, i64 T) {
+static void solve_group(Work<D>& w, const SolveArgs& o, i64* status, i64* iters_out, double* res_out,
+                        double* const* trace) {
+  const i64 T = o.T;
   const int K = w.K, n = w.n;
   const bool soc = D > 1;
   const V one = splat(1.0), zero = splat(0.0), inf = splat(__builtin_inf());
@@ -315,8 +305,8 @@ static void solve_group(Work<D>& w, const Options& o, i64* status, i64* iters_ou
     for (int i = 0; i < D; i++) w.s_q[k * D + i] = sel(w.on[k], w.z[k * D + i], i == 0 ? one : zero);
   }
   V shift_s = worst(w, 1.0), shift_l = worst(w, -1.0);
-  V add_s = sel(shift_s >= -1e-8, o.margin + shift_s, zero);
-  V add_l = sel(shift_l >= -1e-8, o.margin + shift_l, zero);
+  V add_s = sel(shift_s >= -1e-8, o.start_margin + shift_s, zero);
+  V add_l = sel(shift_l >= -1e-8, o.start_margin + shift_l, zero);
   for (int k = 0; k < K; k++) {
     w.lam_l[k] = sel(w.onl[k], -w.s_l[k] + add_l, one);
     w.s_l[k] = sel(w.onl[k], w.s_l[k] + add_s, one);
@@ -388,7 +378,7 @@ static void solve_group(Work<D>& w, const Options& o, i64* status, i64* iters_ou
       }
     }
     best_age = sel(better, zero, best_age + 1.0);
-    M conv = run & (res <= o.tol);
+    M conv = run & (res <= o.ipm_tol);
     M unb = run & ~conv & (zmax > 1e12);
     for (int l = 0; l < LANES; l++) {
       if (conv[l]) stat[l] = CONVERGED;
@@ -563,7 +553,7 @@ static void solve_group(Work<D>& w, const Options& o, i64* status, i64* iters_ou
   }
   for (int l = 0; l < LANES; l++) {
     double r = best_res[l];
-    if (stat[l] == MAX_ITER && r <= o.acc_tol) stat[l] = INACCURATE;
+    if (stat[l] == MAX_ITER && r <= o.acceptable_tol) stat[l] = INACCURATE;
     if (degree[l] > 0.0 && !__builtin_isfinite(r)) stat[l] = NUMERICAL;
     status[l] = stat[l];
     iters_out[l] = its[l];
