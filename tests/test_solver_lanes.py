@@ -9,14 +9,16 @@ import ctypes
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 from solver_oracle import random_instance
 
-from diffcontact.solver import ipm, lanes, scaling, status
+from diffcontact.solver import lanes, scaling, status
 from diffcontact.solver.exact import contact_dims
+from diffcontact.solver.problem import IPM_TOL, START_MARGIN
 from diffcontact.solver.status import Status
 
 
@@ -27,8 +29,15 @@ def _standard_form(K, d, B, seed):
     active = torch.rand(B, K, generator=gen) > 0.2
     active[0] = False  # an element without any contact
     arrays = scaling.scale_batch(A.numpy(), q.numpy(), mu.numpy(), lower.numpy(), active.numpy(), contact_dims(d))
-    _, P, c, l_hat, *_, on_q, on_l, _ = (torch.from_numpy(a) for a in arrays)
+    _, P, c, l_hat, *_, on_q, on_l, _ = arrays
     return P, c, l_hat, on_q, on_l
+
+
+def _iterates(P, c, l_hat, on_q, on_l, d, trace):
+    """The interior-point iterates alone (to 1e-8, no polishing), as tensors."""
+    options = dict(acceptable_tol=1e-7, max_iter=60, start_margin=START_MARGIN, refine_tol=IPM_TOL)
+    res = lanes.solve(P, c, l_hat, on_q, on_l, d, ipm_tol=1e-8, final_tol=1e-8, **options, polish_steps=0, trace=trace)
+    return SimpleNamespace(**{name: torch.from_numpy(getattr(res, name)) for name in res.OUTPUTS})
 
 
 @pytest.fixture
@@ -45,7 +54,7 @@ def test_lane_widths_agree(d, K, restore_width):
     for width in lanes.supported_widths():
         lanes.select_width(width)
         trace = np.zeros((23, 8, 4))
-        res = ipm.solve_ipm(*data, d, tol=1e-8, polish_steps=0, trace=trace)  # the iterates alone
+        res = _iterates(*data, d, trace)
         results[width] = (res, trace)
     ref, ref_trace = results[lanes.supported_widths()[0]]
     assert (ref.status == Status.CONVERGED).all()

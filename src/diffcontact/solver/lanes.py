@@ -1,11 +1,24 @@
-"""The solver's compiled kernel (``csrc/*.hpp``): W problems at a time in the lanes of SIMD vectors.
+"""The solver's compiled kernel (``csrc/``, interface ``csrc/api.h``): a batched primal-dual interior-point method
+for many small contact cone QPs, W problems at a time in the lanes of SIMD vectors (no autograd).
+
+Standard form, per batch element (all contacts of dimension d, K contacts, n = K·d variables):
+
+    minimise ½ zᵀPz + cᵀz   subject to   z_n,i ≥ l_i  and  ‖z_t,i‖ ≤ z_n,i   for every active contact i,
+
+i.e. G z + s = h with s in the product of K non-negative rays and (if d ≥ 2) K second-order cones, where
+G z = (−z_n,i ; −z_i) and h = (−l_i ; 0).  Inactive contacts have no cones and P = I, c = 0 there, so z = 0.
+
+The method is Mehrotra's predictor–corrector with Nesterov–Todd scaling (as in CVXOPT's coneqp,
+``csrc/ipm_lanes.hpp``).  The reduced Newton matrix H = P + GᵀW⁻²G is P plus a d×d block per contact; it is
+positive definite even when P is singular, and one Cholesky factor serves both directions of an iteration.  Newton
+steps on the exact optimality conditions then polish the solution to rounding accuracy (``csrc/exact_lanes.hpp``,
+equations in ``exact.py``).  The tolerances and the retries are the caller's (``problem._solve_with_retries``).
 
 Two entry points: the interior-point method followed by polishing (``solve``), and the adjoint solve of the
-backward pass (``adjoint``).
-
-Built with the package (``setup.py``) and called through ctypes, which releases the GIL, so the batch is split
-among threads here.  The lane width (8 with AVX-512, 4 with AVX2, else 2) is chosen from the CPU at run time;
-the environment variable ``DIFFCONTACT_LANES`` (8, 4 or 2) forces one that the CPU supports.
+backward pass (``adjoint``).  Built with the package (``setup.py``) as a plain shared library and called through
+ctypes, which releases the GIL, so the batch is split among threads here.  The lane width (8 with AVX-512, 4 with
+AVX2, else 2) is chosen from the CPU on first use; the environment variable ``DIFFCONTACT_LANES`` (8, 4 or 2)
+forces one that the CPU supports.
 """
 
 from __future__ import annotations
@@ -14,6 +27,7 @@ import ctypes
 import importlib.machinery
 import os
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import numba
@@ -170,33 +184,78 @@ def _address(a: np.ndarray) -> int:
     return a.ctypes.data
 
 
-def solve(
-    P,
-    c,
-    lower,
-    on,
-    on_l,
-    d: int,
-    idx,
-    *,
-    ipm_tol,
-    final_tol,
-    acceptable_tol,
-    max_iter,
-    start_margin,
-    refine_tol,
-    polish_steps,
-    out,
-    trace,
-) -> None:
-    """Interior-point method to ``ipm_tol``, then (``polish_steps`` > 0) polishing, of the batch elements ``idx``
-    (``SolveArgs``: the names and meanings are those of ``csrc/api.h``).
+@dataclass
+class IPMResult:
+    """What ``solve`` returns: the solution, its status, and what the backward pass needs (float64 numpy, C-contiguous;
+    B batch, K contacts, n = K·d).  Rows not solved keep their initial values (z = 0, unit ray slacks and
+    multipliers, status CONVERGED)."""
 
-    P: (B, n, n), c: (B, n), lower: (B, K) float64; on, on_l: (B, K) bool; idx: (m,) int64 (all C-contiguous);
-    out: the tuple (z (B, n), s_l, lam_l (B, K), s_q, lam_q (B, K, d), status, iterations (B,) int64, residual
-    (B,)) written at the rows ``idx``; trace: (B, T, 4) (T may be 0).
+    z: np.ndarray  # (B, n)
+    s_l: np.ndarray  # (B, K) slack and multiplier of the rays
+    lam_l: np.ndarray
+    s_q: np.ndarray  # (B, K, d) slack and multiplier of the second-order cones
+    lam_q: np.ndarray
+    status: np.ndarray  # (B,) int64 ``Status`` codes
+    iterations: np.ndarray  # (B,) int64 interior-point iterations
+    residual: np.ndarray  # (B,) scaled KKT residual of the returned point
+    P: np.ndarray  # (B, n, n) the problem's data, for the backward pass
+    on: np.ndarray  # (B, K) bool, cones in use
+    on_l: np.ndarray  # (B, K) bool, rays in use
+
+    OUTPUTS = ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")  # as in ``SolveArgs``
+
+    @classmethod
+    def empty(cls, P: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int) -> IPMResult:
+        """Outputs in their initial state for the problems (P, on, on_l)."""
+        B, K = on.shape
+        return cls(
+            np.zeros((B, K * d)),
+            np.ones((B, K)),
+            np.ones((B, K)),
+            np.zeros((B, K, d)),
+            np.zeros((B, K, d)),
+            np.zeros(B, dtype=np.int64),
+            np.zeros(B, dtype=np.int64),
+            np.zeros(B),
+            P,
+            on,
+            on_l,
+        )
+
+
+def solve(
+    P: np.ndarray,
+    c: np.ndarray,
+    lower: np.ndarray,
+    on: np.ndarray,
+    on_l: np.ndarray,
+    d: int,
+    idx: np.ndarray | None = None,
+    *,
+    ipm_tol: float,
+    final_tol: float,
+    acceptable_tol: float,
+    max_iter: int,
+    start_margin: float,
+    refine_tol: float,
+    polish_steps: int,
+    out: IPMResult | None = None,
+    trace: np.ndarray | None = None,
+) -> IPMResult:
+    """Interior-point method to ``ipm_tol``, then (``polish_steps`` > 0) polishing, of the batch elements ``idx``
+    (default: all); the options are the fields of ``SolveArgs`` (``csrc/api.h``), under the same names.
+
+    P: (B, n, n), c: (B, n), lower: (B, K) float64; on, on_l: (B, K) bool; idx: (m,) int64 (all C-contiguous).
+    Writes the rows ``idx`` of ``out`` (default: a new ``IPMResult.empty``) and returns it.  ``trace`` (B, T, 4),
+    if given, receives per iteration the primal and dual residuals, the gap and the step taken (for diagnosis).
     """
-    K = lower.shape[1]
+    B, K = lower.shape
+    out = IPMResult.empty(P, on, on_l, d) if out is None else out
+    idx = np.arange(B, dtype=np.int64) if idx is None else idx
+    if trace is None:
+        trace = np.zeros((B, 0, 4))
+    elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
+        raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
     args = SolveArgs(
         *map(_address, (P, c, lower, on, on_l)),
         K,
@@ -209,23 +268,25 @@ def solve(
         start_margin,
         refine_tol,
         polish_steps,
-        *map(_address, out),
+        *(_address(getattr(out, name)) for name in IPMResult.OUTPUTS),
         _address(trace),
         trace.shape[1],
     )
     ref = ctypes.byref(args)
     parallel(lambda start, stop: _check(_lib.diffcontact_ipm_solve(ref, start, stop), K), len(idx))
+    return out
 
 
-def adjoint(P, s_l, lam_l, s_q, lam_q, on, on_l, d: int, g):
-    """Solve Kᵀ[u; v] = [g; 0] per element (``implicit.py``), the weakly active cones of singular elements taken
-    as inactive.  Arrays as in ``solve`` (C-contiguous), g: (B, n).  Returns u: (B, n), the rays' v: (B, K) and
-    ok: (B,) bool (False where K is singular even so)."""
-    B, K = s_l.shape
-    u = np.empty((B, K * d))
+def adjoint(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Solve Kᵀ[u; v] = [g; 0] per element at the solution ``res`` (``implicit.py``), the weakly active cones of
+    singular elements taken as inactive.  g: (B, n) float64, C-contiguous.  Returns u: (B, n), the rays' v: (B, K)
+    and ok: (B,) bool (False where K is singular even so)."""
+    B, K = res.s_l.shape
+    u = np.empty((B, K * res.s_q.shape[-1]))
     v_l = np.empty((B, K))
     ok = np.empty(B, dtype=np.bool_)
-    args = AdjointArgs(*map(_address, (P, s_l, lam_l, s_q, lam_q, on, on_l)), K, d, *map(_address, (g, u, v_l, ok)))
+    inputs = (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)
+    args = AdjointArgs(*map(_address, inputs), K, res.s_q.shape[-1], *map(_address, (g, u, v_l, ok)))
     ref = ctypes.byref(args)
     parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(ref, start, stop), K), B)
     return u, v_l, ok
