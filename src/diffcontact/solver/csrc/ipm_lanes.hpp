@@ -1,8 +1,8 @@
 // Interior-point method for many small contact cone QPs, W problems at a time in the lanes of SIMD vectors.
 //
-// The algorithm is the one of ipm.py (Mehrotra predictor–corrector, Nesterov–Todd scaling of the second-order
-// cones kept as d×d matrices and updated multiplicatively, one step of iterative refinement of every Newton
-// direction near the solution, the best iterate kept, stalls detected).  The problems of a group run in lockstep:
+// The problem is stated in lanes.py.  The method: Mehrotra's predictor–corrector with Nesterov–Todd scaling of the
+// second-order cones kept as d×d matrices and updated multiplicatively, one step of iterative refinement of every
+// Newton direction near the solution, the best iterate kept, stalls detected.  The problems of a group run in lockstep:
 // every operation acts on W problems at once, a problem that has finished stops being updated (its best iterate is
 // kept) and the group ends when all have.  Per-contact switches (a ray or cone in use or not) are lane masks.
 //
@@ -83,7 +83,7 @@ struct Work {
   }
 };
 
-// Cholesky factor of H into L (layout of kernel._cholesky: factor below the diagonal, its transpose above,
+// Cholesky factor of H into L (layout: factor below the diagonal, its transpose above,
 // reciprocal diagonal).  Returns the lanes where H is positive definite.
 static inline M cholesky(int n, const V* H, V* L) {
   M ok = (M{} == 0);
@@ -137,7 +137,7 @@ static M factor(Work<D>& w, const V* w2l, const V* w2q, M run) {
   return cholesky(n, w.H, w.L);
 }
 
-// Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none (kernel._soc_max_step).
+// Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.
 template <int D>
 static inline V soc_max_step(const V* x, const V* dx) {
   V a = dx[0] * dx[0], b = x[0] * dx[0], r = splat(0.0);
@@ -160,7 +160,7 @@ static inline V soc_max_step(const V* x, const V* dx) {
   return sel(none, inf, best);
 }
 
-// NT scaling of one cone: W, Wi (D×D) with W λ = W⁻¹ s (kernel._nt_scaling).
+// NT scaling of one cone: W, Wi (D×D) with W λ = W⁻¹ s.
 template <int D>
 static inline void nt_scaling(const V* s, const V* lam, V* W, V* Wi) {
   V rs = splat(0.0), rl = splat(0.0);
@@ -198,7 +198,7 @@ static inline void jprod(const V* x, const V* y, V* out) {
   for (int i = 1; i < D; i++) out[i] = x[0] * y[i] + y[0] * x[i];
 }
 
-// Solve P Δz + GᵀΔλ = b_z, GΔz + Δs = b_s, λ̃∘(W⁻ᵀΔs + WΔλ) = rc (kernel._newton).
+// Solve P Δz + GᵀΔλ = b_z, GΔz + Δs = b_s, λ̃∘(W⁻ᵀΔs + WΔλ) = rc.
 template <int D>
 static void newton(Work<D>& w, const V* b_l, const V* b_q, const V* rc_l, const V* rc_q) {
   const int n = w.n, K = w.K;
@@ -254,7 +254,7 @@ static void newton(Work<D>& w, const V* b_l, const V* b_q, const V* rc_l, const 
   }
 }
 
-// max over the cones in use of −(smallest eigenvalue of sign·s) (kernel._worst)
+// max over the cones in use of −(smallest eigenvalue of sign·s)
 template <int D>
 static V worst(const Work<D>& w, double sign) {
   V r = splat(-__builtin_inf());
@@ -500,7 +500,7 @@ static void solve_group(Work<D>& w, const SolveArgs& o, i64* status, i64* iters_
         }
         V sg = vmin(vmax(gap_aff / vmax(gap, splat(1e-300)), zero), one);
         V sigma = sg * sg * sg;
-        // a short last step: the iterate is badly centred, so centre more (kernel.py)
+        // a short last step: the iterate is badly centred, so centre more
         if (it > 0) sigma = sel(step < 0.5, vmax(sigma, splat(0.5)), sigma);
         tau = sigma * gap / sel(degree > 0.0, degree, one);
       } else {
