@@ -25,30 +25,37 @@ static void gather_problem(Work<D>& w, const i64* b, const double* P, const doub
     }
 }
 
-template <int D>
-static void* alloc_work(Work<D>& w, Exact<D>& e, int K) {
+// Calls body(w, e, b, valid) for the lane groups of the elements start … stop − 1 with one thread's work arrays:
+// b holds the group's batch indices (idx[j], or j if idx is null; the last group padded with copies of its last
+// element), of which the first `valid` are its own.  Returns 0, or −1 if out of memory.
+template <int D, class Body>
+static int for_groups(int K, const i64* idx, i64 start, i64 stop, Body body) {
+  Work<D> w;
+  Exact<D> e;
   void* mem = nullptr;
-  i64 size = Work<D>::size(K) + Exact<D>::size(K);
-  if (posix_memalign(&mem, 64, sizeof(V) * size) != 0) return nullptr;
+  if (posix_memalign(&mem, 64, sizeof(V) * (Work<D>::size(K) + Exact<D>::size(K))) != 0) return -1;
   w.carve((V*)mem, K);
   e.carve((V*)mem + Work<D>::size(K), K);
-  return mem;
+  for (i64 g = start; g < stop; g += LANES) {
+    i64 b[LANES];
+    for (int l = 0; l < LANES; l++) {
+      const i64 j = g + l < stop ? g + l : stop - 1;
+      b[l] = idx ? idx[j] : j;
+    }
+    body(w, e, b, stop - g < LANES ? (int)(stop - g) : LANES);
+  }
+  free(mem);
+  return 0;
 }
 
 template <int D>
 static int solve_indices(const SolveArgs& a, i64 start, i64 stop) {
   const int K = (int)a.K;
   const i64 n = (i64)K * D, T = a.T;
-  Work<D> w;
-  Exact<D> e;
-  void* mem = alloc_work(w, e, K);
-  if (!mem) return -1;
-  for (i64 g = start; g < stop; g += LANES) {
-    i64 b[LANES];
-    for (int l = 0; l < LANES; l++) b[l] = a.idx[g + l < stop ? g + l : stop - 1];
+  return for_groups<D>(K, a.idx, start, stop, [&](Work<D>& w, Exact<D>& e, const i64* b, int valid) {
     gather_problem(w, b, a.P, a.c, a.lower, a.on, a.on_l);
     double* tr[LANES];
-    for (int l = 0; l < LANES; l++) tr[l] = (T > 0 && g + l < stop) ? a.trace + b[l] * T * 4 : nullptr;
+    for (int l = 0; l < LANES; l++) tr[l] = (T > 0 && l < valid) ? a.trace + b[l] * T * 4 : nullptr;
     i64 st[LANES], it[LANES];
     double r[LANES];
     solve_group<D>(w, a, st, it, r, tr);
@@ -61,7 +68,7 @@ static int solve_indices(const SolveArgs& a, i64 start, i64 stop) {
           if (run[l]) r[l] = rp[l];
       }
     }
-    for (int l = 0; l < LANES && g + l < stop; l++) {
+    for (int l = 0; l < valid; l++) {
       const i64 el = b[l];
       if (st[l] <= MAX_ITER)  // (numerical trouble or unbounded: reported as such)
         st[l] = r[l] <= a.final_tol ? CONVERGED : r[l] <= a.acceptable_tol ? INACCURATE : MAX_ITER;
@@ -78,22 +85,14 @@ static int solve_indices(const SolveArgs& a, i64 start, i64 stop) {
       a.iterations[el] = it[l];
       a.residual[el] = r[l];
     }
-  }
-  free(mem);
-  return 0;
+  });
 }
 
 template <int D>
-static int adjoint_range(const AdjointArgs& a, i64 b0, i64 b1) {
+static int adjoint_range(const AdjointArgs& a, i64 start, i64 stop) {
   const int K = (int)a.K;
   const i64 n = (i64)K * D;
-  Work<D> w;
-  Exact<D> e;
-  void* mem = alloc_work(w, e, K);
-  if (!mem) return -1;
-  for (i64 g0 = b0; g0 < b1; g0 += LANES) {
-    i64 b[LANES];
-    for (int l = 0; l < LANES; l++) b[l] = g0 + l < b1 ? g0 + l : b1 - 1;
+  return for_groups<D>(K, nullptr, start, stop, [&](Work<D>& w, Exact<D>& e, const i64* b, int valid) {
     gather_problem(w, b, a.P, nullptr, nullptr, a.on, a.on_l);
     for (i64 i = 0; i < n; i++)
       for (int l = 0; l < LANES; l++) {
@@ -107,15 +106,13 @@ static int adjoint_range(const AdjointArgs& a, i64 b0, i64 b1) {
         w.llb[k][l] = a.lam_l[b[l] * K + k];
       }
     M good = adjoint(e, w, w.rhs);
-    for (int l = 0; l < LANES && g0 + l < b1; l++) {
+    for (int l = 0; l < valid; l++) {
       const i64 el = b[l];
       for (i64 i = 0; i < n; i++) a.u[el * n + i] = e.dx[i][l];
       for (int k = 0; k < K; k++) a.v_l[el * K + k] = e.dx[n + k][l];
       a.ok[el] = good[l] ? 1 : 0;
     }
-  }
-  free(mem);
-  return 0;
+  });
 }
 
 int solve(const SolveArgs& a, i64 start, i64 stop) {
