@@ -115,22 +115,27 @@ static int adjoint_range(const AdjointArgs& a, i64 start, i64 stop) {
   });
 }
 
-int solve(const SolveArgs& a, i64 start, i64 stop) {
-  switch (a.d) {
-    case 1: return solve_indices<1>(a, start, stop);
-    case 2: return solve_indices<2>(a, start, stop);
-    case 3: return solve_indices<3>(a, start, stop);
+// f(Dim<d>{}) for the contact dimension d (1, 2 or 3: the compiled ones); −2 for any other.
+template <int D>
+struct Dim {
+  static constexpr int value = D;
+};
+template <class F>
+static int by_dim(i64 d, F f) {
+  switch (d) {
+    case 1: return f(Dim<1>{});
+    case 2: return f(Dim<2>{});
+    case 3: return f(Dim<3>{});
     default: return -2;
   }
 }
 
+int solve(const SolveArgs& a, i64 start, i64 stop) {
+  return by_dim(a.d, [&](auto dim) { return solve_indices<decltype(dim)::value>(a, start, stop); });
+}
+
 int adjoint(const AdjointArgs& a, i64 start, i64 stop) {
-  switch (a.d) {
-    case 1: return adjoint_range<1>(a, start, stop);
-    case 2: return adjoint_range<2>(a, start, stop);
-    case 3: return adjoint_range<3>(a, start, stop);
-    default: return -2;
-  }
+  return by_dim(a.d, [&](auto dim) { return adjoint_range<decltype(dim)::value>(a, start, stop); });
 }
 
 }  // namespace NS
