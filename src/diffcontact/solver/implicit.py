@@ -95,6 +95,9 @@ def _adjoint_lstsq(res: IPMResult, g: np.ndarray, sel: np.ndarray) -> tuple[np.n
     Kmat = exact.kkt_matrix_batch(*parts, contact_dims(d), True)
     rhs = np.zeros(Kmat.shape[:2])
     rhs[:, :n] = g[sel]
-    # (torch's least squares: LAPACK gelsy, which handles the rank deficiency of a degenerate K)
-    sol = torch.linalg.lstsq(torch.from_numpy(Kmat).mT, torch.from_numpy(rhs).unsqueeze(-1)).solution.squeeze(-1)
-    return sol[:, :n].numpy(), sol[:, n : n + K].numpy()
+    # The least-squares solution of least norm, by the pseudo-inverse with LAPACK's default cut-off of singular
+    # values (that of numpy.linalg.lstsq).  (torch.linalg.lstsq gave results that varied from run to run in the
+    # last digits, amplified by the conditioning of the degenerate K.)
+    pinv = np.linalg.pinv(np.swapaxes(Kmat, -1, -2), rcond=Kmat.shape[-1] * np.finfo(np.float64).eps)
+    sol = np.matmul(pinv, rhs[..., None])[..., 0]
+    return sol[:, :n], sol[:, n : n + K]
