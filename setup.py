@@ -1,4 +1,7 @@
-"""Build of the contact solver's compiled kernel (everything else is in pyproject.toml)."""
+"""Build of the contact solver's compiled kernel (everything else is in pyproject.toml).
+
+The kernel is a plain shared library loaded with ctypes (``solver/lanes.py``), not a CPython module: setuptools
+builds it as an extension only for its file name and compiler flags."""
 
 import glob
 
@@ -11,7 +14,7 @@ setup(
         Extension(
             "diffcontact.solver._lanes",
             sources=[CSRC + f for f in ("lanes_module.cpp", "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")],
-            depends=sorted(glob.glob(CSRC + "*.hpp")),
+            depends=sorted(glob.glob(CSRC + "*.h*")),
             # IEEE arithmetic except errno, traps and fused multiply-adds: the kernel tests for NaN and inf itself
             extra_compile_args=["-O3", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=fast", "-fno-exceptions"]
             + ["-Wall"],

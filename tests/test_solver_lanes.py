@@ -5,13 +5,21 @@ moves the last iterates by about 1e-9."""
 
 from __future__ import annotations
 
+import ctypes
+import os
+import subprocess
+import sys
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
 from solver_oracle import random_instance
 
-from diffcontact.solver import ipm, lanes, scaling
+from diffcontact.solver import lanes, scaling, status
 from diffcontact.solver.exact import contact_dims
+from diffcontact.solver.problem import IPM_TOL, START_MARGIN
+from diffcontact.solver.status import Status
 
 
 def _standard_form(K, d, B, seed):
@@ -21,8 +29,15 @@ def _standard_form(K, d, B, seed):
     active = torch.rand(B, K, generator=gen) > 0.2
     active[0] = False  # an element without any contact
     arrays = scaling.scale_batch(A.numpy(), q.numpy(), mu.numpy(), lower.numpy(), active.numpy(), contact_dims(d))
-    _, P, c, l_hat, *_, on_q, on_l, _ = (torch.from_numpy(a) for a in arrays)
+    _, P, c, l_hat, *_, on_q, on_l, _ = arrays
     return P, c, l_hat, on_q, on_l
+
+
+def _iterates(P, c, l_hat, on_q, on_l, d, trace):
+    """The interior-point iterates alone (to 1e-8, no polishing), as tensors."""
+    options = dict(acceptable_tol=1e-7, max_iter=60, start_margin=START_MARGIN, refine_tol=IPM_TOL)
+    res = lanes.solve(P, c, l_hat, on_q, on_l, d, ipm_tol=1e-8, final_tol=1e-8, **options, polish_steps=0, trace=trace)
+    return SimpleNamespace(**{name: torch.from_numpy(getattr(res, name)) for name in res.OUTPUTS})
 
 
 @pytest.fixture
@@ -39,10 +54,10 @@ def test_lane_widths_agree(d, K, restore_width):
     for width in lanes.supported_widths():
         lanes.select_width(width)
         trace = np.zeros((23, 8, 4))
-        res = ipm.solve_ipm(*data, d, tol=1e-8, polish_steps=0, trace=trace)  # the iterates alone
+        res = _iterates(*data, d, trace)
         results[width] = (res, trace)
     ref, ref_trace = results[lanes.supported_widths()[0]]
-    assert (ref.status == ipm.CONVERGED).all()
+    assert (ref.status == Status.CONVERGED).all()
     assert ref.iterations[0] == 0 and (ref.z[0] == 0).all()
     assert (ref_trace[1:, 0, 2] > 0).all()  # the trace holds the gap of the first iterate
     for res, trace in results.values():
@@ -65,6 +80,31 @@ def test_bad_environment_variable_is_named(monkeypatch, restore_width):
         lanes.select_width()
 
 
+def test_bad_environment_variable_does_not_break_the_import():
+    """The width is chosen on first use: the import succeeds and the first solve names the variable."""
+    code = (
+        "import torch, diffcontact\n"
+        "try:\n"
+        "    diffcontact.solve_cone_qp(torch.eye(2)[None], -torch.ones(1, 2), torch.ones(1, 1))\n"
+        "except ValueError as e:\n"
+        "    print(e)\n"
+    )
+    env = {**os.environ, "DIFFCONTACT_LANES": "wide"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert "DIFFCONTACT_LANES='wide': not a lane width" in out.stdout
+
+
+def test_python_and_kernel_agree_on_the_shared_facts():
+    """Status codes, failure rule, weak-cone threshold and struct sizes: csrc/api.h against the Python copies."""
+    got = lanes._lib.diffcontact_constants().contents
+    assert {s.name: int(s) for s in Status} == {s.name: getattr(got, s.name.lower()) for s in Status}
+    assert got.first_failure == status.FIRST_FAILURE == Status.MAX_ITER
+    assert got.weak_tol == status.WEAK_TOL == 1e-6
+    assert got.solve_args_size == ctypes.sizeof(lanes.SolveArgs)
+    assert got.adjoint_args_size == ctypes.sizeof(lanes.AdjointArgs)
+    assert [bool(status.is_failure(s)) for s in Status] == [False, False, True, True, True]
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_solution_does_not_depend_on_the_batch_around_it(d):
     """Lanes are independent: an element's solution and gradient are the same bit for bit whether it is solved
@@ -85,3 +125,32 @@ def test_solution_does_not_depend_on_the_batch_around_it(d):
     solve_cone_qp(*one).pow(2).sum().backward()
     for a, b in zip(ins, one):
         assert torch.equal(a.grad[17:18], b.grad)
+
+
+def test_degenerate_gradient_is_reproducible(monkeypatch):
+    """An element whose adjoint needs the least-squares fallback (a singular K: rank-1 A in 3D) gets the same
+    gradient bit for bit on every run and alone or in its batch (it varied in the last digits with
+    torch.linalg.lstsq)."""
+    from diffcontact.solver import implicit, solve_cone_qp
+
+    fallback = []
+    lstsq = implicit._adjoint_lstsq
+    monkeypatch.setattr(implicit, "_adjoint_lstsq", lambda res, g, sel: fallback.append(sel) or lstsq(res, g, sel))
+    gen = torch.Generator().manual_seed(301)
+    random_instance(gen, 37, 1, 3)
+    torch.rand(37, 1, generator=gen)
+    data = random_instance(gen, 37, 1, 3, rank=1)
+    active = torch.rand(37, 1, generator=gen) > 0.15
+
+    def grads(sel):
+        ins = [t[sel].clone().requires_grad_() for t in data]
+        f = solve_cone_qp(*ins, active=active[sel], on_failure="count")
+        (f * torch.linspace(-1, 1, 3, dtype=f.dtype)).pow(2).sum().backward()
+        return [t.grad for t in ins]
+
+    first = grads(slice(None))
+    assert len(fallback) == 1 and fallback[0].sum() == 1
+    b = int(fallback[0].nonzero()[0][0])
+    for sel, row in ((slice(None), b), (slice(None), b), (slice(b, b + 1), 0)):
+        for g0, g1 in zip(first, grads(sel)):
+            assert torch.equal(g0[b], g1[row])

@@ -1,4 +1,4 @@
-"""The optimality conditions of the standard-form problem (see ``ipm.py``) linearised at a solution, as a dense
+"""The optimality conditions of the standard-form problem (see ``lanes.py``) linearised at a solution, as a dense
 matrix: the reference for the compiled kernel's reduced solves (``csrc/exact_lanes.hpp``, which polishes the
 interior-point solution and solves the adjoint of the backward pass) and the least-squares fallback of the
 backward pass at a degenerate solution.
@@ -16,6 +16,8 @@ import math
 import numpy as np
 from numba import njit
 
+from diffcontact.solver.status import WEAK_TOL
+
 
 def contact_dims(d: int) -> tuple:
     """The ``dims`` argument of the compiled functions for contact dimension d: a tuple of length d (its length
@@ -28,13 +30,13 @@ _FM = {"contract", "arcp", "nsz", "afn", "reassoc"}
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _weak_ray(s, lam):
+def _weak_ray(s, lam, weak_tol):
     """A ray whose multiplier is negligible next to its slack: inactive, or exactly at its switch."""
-    return lam <= 1e-6 * max(1.0, abs(s))
+    return lam <= weak_tol * max(1.0, abs(s))
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy", inline="always")
-def _weak_cone(s, lam, dims):
+def _weak_cone(s, lam, dims, weak_tol):
     """A cone whose multiplier is negligible next to its slack: sticking, or exactly at stick/slip."""
     d = len(dims)
     ns = 0.0
@@ -42,14 +44,15 @@ def _weak_cone(s, lam, dims):
     for i in range(d):
         ns += s[i] * s[i]
         nl += lam[i] * lam[i]
-    return math.sqrt(nl) <= 1e-6 * max(1.0, math.sqrt(ns))
+    return math.sqrt(nl) <= weak_tol * max(1.0, math.sqrt(ns))
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M):
+def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M, weak_tol=WEAK_TOL):
     """The linearised optimality conditions K (N × N, N = n + K + K·d) in M: unknowns (dz, dλ_rays, dλ_cones), rows
     P dz + Gᵀdλ; L(λ) G-part + L(s) dλ per used cone (arrow matrices); dλ = 0-type identity rows for unused
-    cones and, with ``use_weak``, for weakly active ones (which keep their Gᵀ column)."""
+    cones and, with ``use_weak``, for weakly active ones (``status.WEAK_TOL``), which keep their Gᵀ column.
+    (The threshold is an argument, not a global: numba would freeze a global in its cache.)"""
     d = len(dims)
     K = s_l.shape[0]
     n = K * d
@@ -64,13 +67,13 @@ def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M):
         row = n + k
         if onl[k]:
             M[k * d, row] = -1.0
-        if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k])):
+        if onl[k] and not (use_weak and _weak_ray(s_l[k], lam_l[k], weak_tol)):
             M[row, k * d] = lam_l[k]
             M[row, row] = s_l[k]
         else:
             M[row, row] = 1.0
         used = on[k] and d > 1
-        weak = used and use_weak and _weak_cone(s_q[k], lam_q[k], dims)
+        weak = used and use_weak and _weak_cone(s_q[k], lam_q[k], dims, weak_tol)
         for i in range(d):
             row = n + K + k * d + i
             if used:
@@ -90,12 +93,12 @@ def _kkt_matrix(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, M):
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def kkt_matrix_batch(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak):
+def kkt_matrix_batch(P, s_l, lam_l, s_q, lam_q, on, onl, dims, use_weak, weak_tol=WEAK_TOL):
     """The matrices K of :func:`_kkt_matrix` for a batch: (B, N, N)."""
     d = len(dims)
     B, K = s_l.shape
     N = K * d + K + K * d
     out = np.empty((B, N, N))
     for b in range(B):
-        _kkt_matrix(P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], dims, use_weak, out[b])
+        _kkt_matrix(P[b], s_l[b], lam_l[b], s_q[b], lam_q[b], on[b], onl[b], dims, use_weak, out[b], weak_tol)
     return out

@@ -52,7 +52,7 @@ import torch
 from numba import njit
 
 from diffcontact.errors import IndefiniteMatrixError
-from diffcontact.solver.ipm import INACCURATE
+from diffcontact.solver.status import Status
 
 Q_TOL = 0.1  # ... up to this, drift of the constraint velocities, dropped where a flat direction enters the cones
 # a set of minimisers narrower than this (relative) is a point (along a line tangent to a cone, rounding alone
@@ -415,7 +415,7 @@ def _least_norm_several(idx, x, PiN, solve):
         rho = rho * grow
     moved = (g.detach() - x.detach()).abs().amax(-1) > UNIQUE_TOL * scale
     short = live & moved & (size <= ALM_ACCEPT * scale)
-    status = torch.where(moved & ~live, status, torch.where(short, INACCURATE, 0))
+    status = torch.where(moved & ~live, status, torch.where(short, Status.INACCURATE, 0))
     moved = moved & ~live
     return torch.where(moved[:, None], g, x), status, moved
 

@@ -1,36 +1,125 @@
-"""The solver's compiled kernel (``csrc/*.hpp``): W problems at a time in the lanes of SIMD vectors.
+"""The solver's compiled kernel (``csrc/``, interface ``csrc/api.h``): a batched primal-dual interior-point method
+for many small contact cone QPs, W problems at a time in the lanes of SIMD vectors (no autograd).
+
+Standard form, per batch element (all contacts of dimension d, K contacts, n = K·d variables):
+
+    minimise ½ zᵀPz + cᵀz   subject to   z_n,i ≥ l_i  and  ‖z_t,i‖ ≤ z_n,i   for every active contact i,
+
+i.e. G z + s = h with s in the product of K non-negative rays and (if d ≥ 2) K second-order cones, where
+G z = (−z_n,i ; −z_i) and h = (−l_i ; 0).  Inactive contacts have no cones and P = I, c = 0 there, so z = 0.
+
+The method is Mehrotra's predictor–corrector with Nesterov–Todd scaling (as in CVXOPT's coneqp,
+``csrc/ipm_lanes.hpp``).  The reduced Newton matrix H = P + GᵀW⁻²G is P plus a d×d block per contact; it is
+positive definite even when P is singular, and one Cholesky factor serves both directions of an iteration.  Newton
+steps on the exact optimality conditions then polish the solution to rounding accuracy (``csrc/exact_lanes.hpp``,
+equations in ``exact.py``).  The tolerances and the retries are the caller's (``problem._solve_with_retries``).
 
 Two entry points: the interior-point method followed by polishing (``solve``), and the adjoint solve of the
-backward pass (``adjoint``).
-
-Built with the package (``setup.py``) and called through ctypes, which releases the GIL, so the batch is split
-among threads here.  The lane width (8 with AVX-512, 4 with AVX2, else 2) is chosen from the CPU at run time;
-the environment variable ``DIFFCONTACT_LANES`` (8, 4 or 2) forces one that the CPU supports.
+backward pass (``adjoint``).  Built with the package (``setup.py``) as a plain shared library and called through
+ctypes, which releases the GIL, so the batch is split among threads here.  The lane width (8 with AVX-512, 4 with
+AVX2, else 2) is chosen from the CPU on first use; the environment variable ``DIFFCONTACT_LANES`` (8, 4 or 2)
+forces one that the CPU supports.
 """
 
 from __future__ import annotations
 
 import ctypes
+import importlib.machinery
 import os
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
 
 import numba
 import numpy as np
 
-from diffcontact.solver import _lanes
+from diffcontact.solver.status import FIRST_FAILURE, WEAK_TOL, Status
 
-_lib = ctypes.CDLL(_lanes.__file__)
-_lib.diffcontact_ipm_supported.restype = ctypes.c_int
-_lib.diffcontact_ipm_select.restype = ctypes.c_int
-_lib.diffcontact_ipm_select.argtypes = [ctypes.c_int]
-_lib.diffcontact_ipm_width.restype = ctypes.c_int
-_solve = _lib.diffcontact_ipm_solve
-_solve.restype = ctypes.c_int
-_P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-_solve.argtypes = [_P] * 5 + [_I, _I, _P, _I, _D, _D, _D, _I, _D, _D, _I, _I] + [_P] * 10 + [_I]
-_adjoint = _lib.diffcontact_adjoint_solve
-_adjoint.restype = ctypes.c_int
-_adjoint.argtypes = [_P] * 7 + [_I, _I, _P, _I, _I, _P, _P, _P]
+_i64, _f64, _ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+
+
+class SolveArgs(ctypes.Structure):
+    """``struct SolveArgs`` of ``csrc/api.h`` (field by field, the same names; pointers as addresses)."""
+
+    _fields_ = [
+        *((name, _ptr) for name in ("P", "c", "lower", "on", "on_l")),
+        ("K", _i64),
+        ("d", _i64),
+        ("idx", _ptr),
+        ("ipm_tol", _f64),
+        ("final_tol", _f64),
+        ("acceptable_tol", _f64),
+        ("max_iter", _i64),
+        ("start_margin", _f64),
+        ("refine_tol", _f64),
+        ("polish_steps", _i64),
+        *((name, _ptr) for name in ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")),
+        ("trace", _ptr),
+        ("T", _i64),
+    ]
+
+
+class AdjointArgs(ctypes.Structure):
+    """``struct AdjointArgs`` of ``csrc/api.h``."""
+
+    _fields_ = [
+        *((name, _ptr) for name in ("P", "s_l", "lam_l", "s_q", "lam_q", "on", "on_l")),
+        ("K", _i64),
+        ("d", _i64),
+        *((name, _ptr) for name in ("g", "u", "v_l", "ok")),
+    ]
+
+
+class _Constants(ctypes.Structure):
+    """``struct Constants`` of ``csrc/api.h``: what is checked on loading."""
+
+    _fields_ = [
+        *((name, _i64) for name in ("api_version", "solve_args_size", "adjoint_args_size")),
+        *((name, _i64) for name in ("converged", "inaccurate", "max_iter", "numerical", "unbounded", "first_failure")),
+        ("weak_tol", _f64),
+    ]
+
+
+API_VERSION = 2
+
+
+def _load() -> ctypes.CDLL:
+    """The kernel's shared library (built by ``setup.py`` as ``_lanes`` with the extension suffix)."""
+    here = Path(__file__).parent
+    paths = [here / f"_lanes{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES]
+    path = next((p for p in paths if p.exists()), None)
+    build = "build it with `pip install -e .` or `python setup.py build_ext --inplace`"
+    if path is None:
+        raise ImportError(f"the contact solver's compiled kernel is missing from {here}: {build}")
+    lib = ctypes.CDLL(str(path))
+    if not hasattr(lib, "diffcontact_constants"):
+        raise ImportError(f"{path} is a stale build of the contact solver's kernel: {build}")
+    lib.diffcontact_constants.restype = ctypes.POINTER(_Constants)
+    got = lib.diffcontact_constants().contents
+    got = {name: getattr(got, name) for name, _ in _Constants._fields_}
+    want = {
+        "api_version": API_VERSION,
+        "solve_args_size": ctypes.sizeof(SolveArgs),
+        "adjoint_args_size": ctypes.sizeof(AdjointArgs),
+        **{status.name.lower(): int(status) for status in Status},
+        "first_failure": int(FIRST_FAILURE),
+        "weak_tol": WEAK_TOL,
+    }
+    if got != want:
+        raise ImportError(f"{path} disagrees with lanes.py (a stale build?): kernel {got}, Python {want}; {build}")
+    lib.diffcontact_ipm_supported.restype = ctypes.c_int
+    lib.diffcontact_ipm_select.restype = ctypes.c_int
+    lib.diffcontact_ipm_select.argtypes = [ctypes.c_int]
+    lib.diffcontact_ipm_width.restype = ctypes.c_int
+    lib.diffcontact_ipm_solve.restype = ctypes.c_int
+    lib.diffcontact_ipm_solve.argtypes = [ctypes.POINTER(SolveArgs), _i64, _i64]
+    lib.diffcontact_adjoint_solve.restype = ctypes.c_int
+    lib.diffcontact_adjoint_solve.argtypes = [ctypes.POINTER(AdjointArgs), _i64, _i64]
+    return lib
+
+
+_lib = _load()
+_width: int | None = None  # chosen on first use (a bad DIFFCONTACT_LANES must not break the import)
 
 
 def supported_widths() -> list[int]:
@@ -42,6 +131,7 @@ def supported_widths() -> list[int]:
 def select_width(width: int | None = None) -> int:
     """Use the kernel of this lane width (None: ``DIFFCONTACT_LANES`` if set, else the widest this CPU runs);
     returns it."""
+    global _width
     source = f"lane width {width}"
     if width is None:
         env = os.environ.get("DIFFCONTACT_LANES", "")
@@ -49,15 +139,14 @@ def select_width(width: int | None = None) -> int:
         width = int(env) if env.strip().isdigit() else (supported_widths()[0] if not env else -1)
     if width not in (8, 4, 2) or not _lib.diffcontact_ipm_select(width):
         raise ValueError(f"{source}: not a lane width this CPU runs; choose one of {supported_widths()}")
+    _width = width
     return width
 
 
 def current_width() -> int:
-    """The lane width in use."""
-    return _lib.diffcontact_ipm_width()
+    """The lane width in use (chosen by ``select_width()`` on first use)."""
+    return _width if _width is not None else select_width()
 
-
-select_width()
 
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
@@ -91,58 +180,113 @@ def _check(rc: int, K: int) -> None:
         raise RuntimeError(f"contact solver kernel failed (code {rc})")
 
 
+def _address(a: np.ndarray) -> int:
+    return a.ctypes.data
+
+
+@dataclass
+class IPMResult:
+    """What ``solve`` returns: the solution, its status, and what the backward pass needs (float64 numpy, C-contiguous;
+    B batch, K contacts, n = K·d).  Rows not solved keep their initial values (z = 0, unit ray slacks and
+    multipliers, status CONVERGED)."""
+
+    z: np.ndarray  # (B, n)
+    s_l: np.ndarray  # (B, K) slack and multiplier of the rays
+    lam_l: np.ndarray
+    s_q: np.ndarray  # (B, K, d) slack and multiplier of the second-order cones
+    lam_q: np.ndarray
+    status: np.ndarray  # (B,) int64 ``Status`` codes
+    iterations: np.ndarray  # (B,) int64 interior-point iterations
+    residual: np.ndarray  # (B,) scaled KKT residual of the returned point
+    P: np.ndarray  # (B, n, n) the problem's data, for the backward pass
+    on: np.ndarray  # (B, K) bool, cones in use
+    on_l: np.ndarray  # (B, K) bool, rays in use
+
+    OUTPUTS = ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")  # as in ``SolveArgs``
+
+    @classmethod
+    def empty(cls, P: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int) -> IPMResult:
+        """Outputs in their initial state for the problems (P, on, on_l)."""
+        B, K = on.shape
+        return cls(
+            np.zeros((B, K * d)),
+            np.ones((B, K)),
+            np.ones((B, K)),
+            np.zeros((B, K, d)),
+            np.zeros((B, K, d)),
+            np.zeros(B, dtype=np.int64),
+            np.zeros(B, dtype=np.int64),
+            np.zeros(B),
+            P,
+            on,
+            on_l,
+        )
+
+
 def solve(
-    P,
-    c,
-    low,
-    on,
-    onl,
+    P: np.ndarray,
+    c: np.ndarray,
+    lower: np.ndarray,
+    on: np.ndarray,
+    on_l: np.ndarray,
     d: int,
-    idx,
+    idx: np.ndarray | None = None,
     *,
-    tol_ipm,
-    tol,
-    acc_tol,
-    max_iter,
-    margin,
-    refine_tol,
-    polish_steps,
-    last,
-    out,
-    again,
-    trace,
-) -> None:
-    """Interior-point method to ``tol_ipm``, then (``polish_steps`` > 0) polishing, of the batch elements ``idx``.
+    ipm_tol: float,
+    final_tol: float,
+    acceptable_tol: float,
+    max_iter: int,
+    start_margin: float,
+    refine_tol: float,
+    polish_steps: int,
+    out: IPMResult | None = None,
+    trace: np.ndarray | None = None,
+) -> IPMResult:
+    """Interior-point method to ``ipm_tol``, then (``polish_steps`` > 0) polishing, of the batch elements ``idx``
+    (default: all); the options are the fields of ``SolveArgs`` (``csrc/api.h``), under the same names.
 
-    P: (B, n, n), c: (B, n), low: (B, K) float64; on, onl: (B, K) bool; idx: (m,) int64 (all C-contiguous);
-    out: the tuple (z (B, n), s_l, lam_l (B, K), s_q, lam_q (B, K, d), status, iterations (B,) int64, residual
-    (B,)) written at the rows ``idx``; again: (B,) bool, set where an element did not converge to rounding level
-    and ``last`` is False (see ``ipm.solve_ipm``); trace: (B, T, 4) (T may be 0).
+    P: (B, n, n), c: (B, n), lower: (B, K) float64; on, on_l: (B, K) bool; idx: (m,) int64 (all C-contiguous).
+    Writes the rows ``idx`` of ``out`` (default: a new ``IPMResult.empty``) and returns it.  ``trace`` (B, T, 4),
+    if given, receives per iteration the primal and dual residuals, the gap and the step taken (for diagnosis).
     """
-    K = low.shape[1]
-    ptr = [a.ctypes.data for a in (P, c, low, on, onl)]
-    optr = [a.ctypes.data for a in out] + [again.ctypes.data, trace.ctypes.data]
-    opts = (tol_ipm, tol, acc_tol, max_iter, margin, refine_tol, polish_steps, int(last))
+    B, K = lower.shape
+    out = IPMResult.empty(P, on, on_l, d) if out is None else out
+    idx = np.arange(B, dtype=np.int64) if idx is None else idx
+    if trace is None:
+        trace = np.zeros((B, 0, 4))
+    elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
+        raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
+    args = SolveArgs(
+        *map(_address, (P, c, lower, on, on_l)),
+        K,
+        d,
+        _address(idx),
+        ipm_tol,
+        final_tol,
+        acceptable_tol,
+        max_iter,
+        start_margin,
+        refine_tol,
+        polish_steps,
+        *(_address(getattr(out, name)) for name in IPMResult.OUTPUTS),
+        _address(trace),
+        trace.shape[1],
+    )
+    ref = ctypes.byref(args)
+    parallel(lambda start, stop: _check(_lib.diffcontact_ipm_solve(ref, start, stop), K), len(idx))
+    return out
 
-    def run(start, stop):
-        part = idx[start:stop]
-        _check(_solve(*ptr, K, d, part.ctypes.data, len(part), *opts, *optr, trace.shape[1]), K)
 
-    parallel(run, len(idx))
-
-
-def adjoint(P, s_l, lam_l, s_q, lam_q, on, onl, d: int, g):
-    """Solve Kᵀ[u; v] = [g; 0] per element (``implicit.py``), the weakly active cones of singular elements taken
-    as inactive.  Arrays as in ``solve`` (C-contiguous), g: (B, n).  Returns u: (B, n), the rays' v: (B, K) and
-    ok: (B,) bool (False where K is singular even so)."""
-    B, K = s_l.shape
-    u = np.empty((B, K * d))
+def adjoint(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Solve Kᵀ[u; v] = [g; 0] per element at the solution ``res`` (``implicit.py``), the weakly active cones of
+    singular elements taken as inactive.  g: (B, n) float64, C-contiguous.  Returns u: (B, n), the rays' v: (B, K)
+    and ok: (B,) bool (False where K is singular even so)."""
+    B, K = res.s_l.shape
+    u = np.empty((B, K * res.s_q.shape[-1]))
     v_l = np.empty((B, K))
     ok = np.empty(B, dtype=np.bool_)
-    ptr = [a.ctypes.data for a in (P, s_l, lam_l, s_q, lam_q, on, onl)]
-
-    def run(start, stop):
-        _check(_adjoint(*ptr, K, d, g.ctypes.data, start, stop, u.ctypes.data, v_l.ctypes.data, ok.ctypes.data), K)
-
-    parallel(run, B)
+    inputs = (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)
+    args = AdjointArgs(*map(_address, inputs), K, res.s_q.shape[-1], *map(_address, (g, u, v_l, ok)))
+    ref = ctypes.byref(args)
+    parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(ref, start, stop), K), B)
     return u, v_l, ok

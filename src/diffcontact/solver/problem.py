@@ -1,4 +1,5 @@
-"""The contact cone QP: input checks, scaling, and the public entry point ``solve_cone_qp``.
+"""The contact cone QP: input checks, the public entry point ``solve_cone_qp`` and the solver's retry policy
+(``_solve_with_retries``, the one place that decides what is run again and what counts as converged).
 
 Problem (paper Eqs. 15 and 17), independently for every batch element:
 
@@ -13,26 +14,23 @@ under them), so they carry no gradient; D carries the gradient with respect to �
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 from typing import Literal
 
 import numpy as np
 import torch
 
 from diffcontact.errors import ContactSolverError
-from diffcontact.solver import flat, ipm, scaling
+from diffcontact.solver import flat, lanes, scaling
 from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.implicit import ImplicitConeQP, ScaledSolution
+from diffcontact.solver.status import Status, is_failure
 
-
-class Status(IntEnum):
-    """Per-element solver status."""
-
-    CONVERGED = ipm.CONVERGED  #: residuals below ``tol``
-    INACCURATE = ipm.INACCURATE  #: iteration limit, residuals below ``acceptable_tol`` (usable, not an error)
-    MAX_ITER = ipm.MAX_ITER  #: iteration limit with large residuals (failure)
-    NUMERICAL = ipm.NUMERICAL  #: non-finite values or a failed factorisation (failure)
-    UNBOUNDED = ipm.UNBOUNDED  #: the objective is unbounded below on the cones (failure)
+# The retry policy (``_solve_with_retries``).
+IPM_TOL = 1e-5  # the interior-point method's target before polishing (measured fastest in 1e-8 … 1e-3)
+ROUNDING_TOL = 1e-13  # polishing reached rounding level: converged without a pass of the method to ``tol``
+POLISH_STEPS = 3  # factorisations per polishing pass
+START_MARGIN = 0.1  # how far inside the cones the first start lies: measured over 0.001 … 3, K = 1 … 19, d = 2, 3
+ROBUST_MARGIN = 1.0  # CVXOPT's, the start of the retries: slower on average, more robust
 
 
 @dataclass
@@ -49,7 +47,7 @@ class SolverInfo:
     @property
     def failed(self) -> torch.Tensor:
         """(B,) bool: elements whose solution is not usable (returned as zeros)."""
-        return self.status >= Status.MAX_ITER
+        return is_failure(self.status)
 
     @property
     def n_failed(self) -> int:
@@ -117,6 +115,10 @@ def solve_cone_qp(
 ):
     """Solve a batch of contact cone QPs; differentiable by implicit differentiation.
 
+    The solver runs on the CPU in float64 (numpy arrays and a compiled kernel between the input checks and the
+    autograd Function).  Tensors on another device are copied to the CPU and f is copied back to their device
+    (gradients flow through the copies); the info stays on the CPU.
+
     Args:
         A: (B, K·d, K·d) symmetric PSD inverse inertia in contact space, possibly singular and PSD only up to
             rounding: flat directions and non-unique minimisers are resolved as stated in ``solver/flat.py``
@@ -136,6 +138,9 @@ def solve_cone_qp(
     """
     if on_failure not in ("raise", "count"):
         raise ValueError(f"on_failure must be 'raise' or 'count', got {on_failure!r}")
+    device = A.device if isinstance(A, torch.Tensor) else torch.device("cpu")
+    if device.type != "cpu":
+        A, q, mu, lower, active = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (A, q, mu, lower, active))
     A, q, mu, lower, active, d = check_problem(A, q, mu, lower, active)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
     A, q, flats = flat.project_flat(A, q, mu, active, d, flat.psd_tol(out_dtype))
@@ -143,27 +148,112 @@ def solve_cone_qp(
     if flats is not None and flats.consistent.any():
         f, result = _solve_least_norm(A, q, mu, lower, active, d, flats, opts)
     else:
-        f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
-    f = f.to(out_dtype)
+        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
+    f = f.to(device=device, dtype=out_dtype)
     if return_info:
-        return f, SolverInfo(status=result.status, iterations=result.iterations, residual=result.residual)
+        info = (torch.from_numpy(a) for a in (result.status, result.iterations, result.residual))
+        return f, SolverInfo(*info)
     return f
+
+
+def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure):
+    """Solve the batch (checked tensors of ``solve_cone_qp``) with the retry policy below and apply the failure
+    policy; returns (f (B, n) float64, differentiable (``ImplicitConeQP``), the kernel's ``IPMResult``).
+
+    The data are scaled once (f = γ·S·D·z, ``scaling.py``); every attempt then runs the compiled interior-point
+    method with polishing (``lanes.solve``) on some elements, in up to two passes:
+
+    - pass 1: the method to ``IPM_TOL``, then polishing; converged if that reaches rounding level (``ROUNDING_TOL``,
+      or ``tol`` if larger);
+    - pass 2, for the elements that did not (status INACCURATE or MAX_ITER, not a numerical failure): the method
+      to ``tol`` itself, then polishing; converged if the residual is at most ``tol`` (a degenerate solution, where
+      polishing stalls).  Without pass 2 where ``tol`` ≥ ``IPM_TOL``: pass 1 runs to ``tol``.
+
+    Attempts: (1) every element from the default start (``START_MARGIN``); (2) the elements not converged, again
+    from CVXOPT's start, farther inside the cones (``ROBUST_MARGIN``; two rope and BD5 problems of the simulation
+    benchmark need it); (3) the elements still at MAX_ITER with a finite iterate, from that start with γ set to
+    the size of the stalled iterate (a badly estimated solution size, nearly singular A, can stall the method).
+    Attempts 2 and 3 replace an element's result only where they end with a better (lower) status.  Failed
+    elements (``status.is_failure``) get z = 0, and raise ``ContactSolverError`` if ``on_failure`` is "raise".
+    """
+    arrays = (np.ascontiguousarray(t.detach().to(torch.float64).numpy()) for t in (A, q, mu, lower))
+    A64, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = scaling.scale_batch(
+        *arrays, np.ascontiguousarray(active.numpy()), contact_dims(d)
+    )
+    passes = [dict(ipm_tol=tol, final_tol=tol)]
+    if tol < IPM_TOL:
+        passes.insert(0, dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL)))
+    options = dict(acceptable_tol=acceptable_tol, max_iter=max_iter, refine_tol=IPM_TOL, polish_steps=POLISH_STEPS)
+    result = lanes.IPMResult.empty(P, on_q, on_l, d)
+    elements, start_margin, c_try, l_try, gamma_try = np.arange(len(gamma)), START_MARGIN, c, l_hat, gamma
+    for attempt in range(3):
+        if attempt == 1:
+            elements, start_margin = np.flatnonzero(result.status != Status.CONVERGED), ROBUST_MARGIN
+        elif attempt == 2:
+            elements = np.flatnonzero((result.status == Status.MAX_ITER) & np.isfinite(result.z).all(-1))
+            gamma_try = gamma.copy()
+            gamma_try[elements] *= np.maximum(np.abs(result.z[elements]).max(-1), 1e-6)
+            ratio = (gamma / gamma_try)[:, None]  # c, l̂ and ∂l̂/∂lower all scale with 1/γ
+            c_try, l_try = c * ratio, l_hat * ratio
+        if not len(elements):
+            continue
+        out = result if attempt == 0 else lanes.IPMResult.empty(P, on_q, on_l, d)
+        idx = elements
+        for tols in passes:
+            lanes.solve(P, c_try, l_try, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
+            status = out.status[idx]
+            idx = idx[(status == Status.INACCURATE) | (status == Status.MAX_ITER)]
+            if not len(idx):
+                break
+        if attempt > 0:  # keep the better result
+            better = elements[out.status[elements] < result.status[elements]]
+            for name in lanes.IPMResult.OUTPUTS:
+                getattr(result, name)[better] = getattr(out, name)[better]
+            if attempt == 2:
+                lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
+                gamma[better] = gamma_try[better]
+    _raise_on_failure(result.status, on_failure)
+    z = np.where(is_failure(result.status)[:, None], 0.0, result.z)
+    slide = np.zeros_like(sigma)
+    if d > 1 and zero_mu.any():
+        z, speed = _frictionless_slide_limit(z, A64, q.detach().to(torch.float64).numpy(), T, gamma, zero_mu, d)
+        # At μ = 0⁺ a sliding contact's cone multiplier is its sliding speed ‖g_t‖ and adds μ‖g_t‖ to the normal
+        # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
+        slide = speed * sigma / gamma[:, None] * zero_mu
+    q64 = np.ascontiguousarray(q.detach().to(torch.float64).numpy())
+    sol = ScaledSolution(A64, q64, T, S, gamma, lower_scale, slide, z, result)
+    if not A.dtype.is_floating_point:
+        A = A.to(torch.float64)
+    return ImplicitConeQP.apply(A, q, mu, lower, sol), result
+
+
+def _raise_on_failure(status: np.ndarray, on_failure: str) -> None:
+    """The failure policy: raise ``ContactSolverError`` naming the failed elements if ``on_failure`` is "raise"."""
+    failed = is_failure(status)
+    if on_failure == "raise" and failed.any():
+        codes = {int(s): Status(int(s)).name for s in np.unique(status[failed])}
+        raise ContactSolverError(
+            f"contact solver failed for {int(failed.sum())} of {len(status)} batch elements "
+            f"{_first(torch.from_numpy(failed))} (status {codes}); pass on_failure='count' to continue with zero "
+            "impulses for them",
+            status=torch.from_numpy(status),
+            failed=np.flatnonzero(failed).tolist(),
+        )
 
 
 def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     """Solve a batch some of whose elements have non-unique minimisers and return the least-norm ones
-    (``solver/flat.py``): (f, result) as ``_solve_differentiable``.
+    (``solver/flat.py``): (f, result) as ``_solve_with_retries``.
 
     Without gradients: one solve, then the move to the least-norm minimiser.  With gradients, where the minimisers
     are not unique: any minimiser (first solve), a point inside their set, that point solved for again,
     differentiably, as the unique minimiser of the problem with curvature on the flat directions centred on it,
     and the move from there to the least-norm one (whose derivative is that of the cone bounding the set).
     """
-
     if torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower)):
         sub = flats.idx[flats.consistent]
         with torch.no_grad():
-            first, first_result = _solve_differentiable(
+            first, first_result = _solve_with_retries(
                 A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d, *opts
             )
             spread, inner = flat.nonunique(
@@ -178,16 +268,17 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
         nonunique = torch.zeros_like(flats.consistent)
         nonunique[flats.consistent] = spread
         A, q = flat.centre_on(A, q, flats, nonunique, inner[spread])
-        f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
-        result.status[sub] = torch.maximum(result.status[sub], first_result.status)
+        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
+        result.status[sub.numpy()] = np.maximum(result.status[sub.numpy()], first_result.status)
         treated = nonunique
     else:
-        f, result = _solve_differentiable(A, q, mu, lower, active, d, *opts)
+        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
         treated = flats.consistent
     f, status = flat.minimum_norm(f, flats, mu, lower, active, d, _cone_qp(mu, lower, active, d, opts), sel=treated)
-    result.status[flats.idx[treated]] = torch.maximum(result.status[flats.idx[treated]], status)
+    rows = flats.idx[treated].numpy()
+    result.status[rows] = np.maximum(result.status[rows], status.numpy())
     # (a failed element's zeros may have been moved along its flat directions)
-    return torch.where((result.status >= Status.MAX_ITER)[:, None], torch.zeros_like(f), f), result
+    return torch.where(torch.from_numpy(is_failure(result.status))[:, None], torch.zeros_like(f), f), result
 
 
 def _cone_qp(mu, lower, active, d, opts):
@@ -195,90 +286,10 @@ def _cone_qp(mu, lower, active, d, opts):
     of the least-norm stage (``flat.minimum_norm``), differentiable."""
 
     def solve(idx, A, q):
-        f, result = _solve_differentiable(A, q, mu[idx], lower[idx], active[idx], d, *opts)
-        return f, result.status
+        f, result = _solve_with_retries(A, q, mu[idx], lower[idx], active[idx], d, *opts)
+        return f, torch.from_numpy(result.status)
 
     return solve
-
-
-def _solve_differentiable(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure):
-    """Solve (``_solve``), apply the failure policy, and return (f, result) with f differentiable."""
-    B = q.shape[0]
-    with torch.no_grad():
-        sol, result = _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter)
-    failed = result.status >= Status.MAX_ITER
-    if failed.any() and on_failure == "raise":
-        codes = {int(s): Status(int(s)).name for s in result.status[failed].unique()}
-        raise ContactSolverError(
-            f"contact solver failed for {int(failed.sum())} of {B} batch elements {_first(failed)} "
-            f"(status {codes}); pass on_failure='count' to continue with zero impulses for them",
-            status=result.status,
-            failed=failed.nonzero().flatten().tolist(),
-        )
-    if not A.dtype.is_floating_point:
-        A = A.to(torch.float64)
-    return ImplicitConeQP.apply(A, q, mu, lower, sol), result
-
-
-def _solve(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter) -> tuple[ScaledSolution, ipm.IPMResult]:
-    """Scale (f = γ·S·D·z, see ``scaling.py``), solve in z, and collect what the backward pass needs."""
-    arrays = scaling.scale_batch(
-        *(np.ascontiguousarray(t.detach().to(torch.float64).numpy()) for t in (A, q, mu, lower)),
-        np.ascontiguousarray(active.numpy()),
-        contact_dims(d),
-    )
-    A64, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = map(torch.from_numpy, arrays)
-    q64 = q.detach().to(torch.float64)
-
-    def run(c, l_hat, sel, margin=ipm.START_MARGIN):
-        args = tuple(a[sel] for a in (P, c, l_hat, on_q, on_l)) if sel is not None else (P, c, l_hat, on_q, on_l)
-        kw = dict(tol=tol, acceptable_tol=acceptable_tol, max_iter=max_iter, start_margin=margin)
-        return ipm.solve_ipm(*args, d, **kw)
-
-    def keep_better(sel, res2):  # the elements of `sel` that res2 solved better; returns their indices
-        better = res2.status < result.status[sel]
-        idx = sel.nonzero().flatten()[better]
-        for name in ("z", "status", "iterations", "residual", "s_l", "lam_l", "s_q", "lam_q"):
-            getattr(result, name)[idx] = getattr(res2, name)[better]
-        return idx
-
-    result = run(c, l_hat, None)
-    # Elements that did not converge from the default starting point are solved again from CVXOPT's, farther
-    # inside the cones (slower on average, more robust: two rope and BD5 problems of the simulation benchmark).
-    again = result.status != Status.CONVERGED
-    if again.any():
-        keep_better(again, run(c, l_hat, again, ipm.ROBUST_MARGIN))
-    # A badly estimated solution size (nearly singular A) can stall the method: solve those elements once more
-    # with the scale of the stalled iterate.
-    retry = (result.status == Status.MAX_ITER) & torch.isfinite(result.z).all(-1)
-    if retry.any():
-        gamma2 = gamma.clone()
-        gamma2[retry] = gamma[retry] * result.z[retry].abs().amax(-1).clamp_min(1e-6)
-        ratio = (gamma / gamma2)[:, None]  # c, l̂ and ∂l̂/∂lower all scale with 1/γ
-        idx = keep_better(retry, run(c * ratio, l_hat * ratio, retry, ipm.ROBUST_MARGIN))
-        if len(idx):
-            gamma[idx] = gamma2[idx]
-            lower_scale[idx] *= ratio[idx]
-    failed = result.status >= Status.MAX_ITER
-    z = torch.where(failed[:, None], torch.zeros_like(result.z), result.z)
-    slide = torch.zeros_like(sigma)
-    if d > 1 and zero_mu.any():
-        z, speed = _frictionless_slide_limit(z, A64, q64, T, gamma, zero_mu, d)
-        # At μ = 0⁺ a sliding contact's cone multiplier is its sliding speed ‖g_t‖ and adds μ‖g_t‖ to the normal
-        # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
-        slide = speed * sigma / gamma[:, None] * zero_mu
-    sol = ScaledSolution(
-        A=A64,
-        q=q64,
-        T=T,
-        S=S,
-        gamma=gamma,
-        lower_scale=lower_scale,
-        slide=slide,
-        z=z,
-        result=result,
-    )
-    return sol, result
 
 
 def _frictionless_slide_limit(z, A, q, T, gamma, zero_mu, d):
@@ -291,11 +302,11 @@ def _frictionless_slide_limit(z, A, q, T, gamma, zero_mu, d):
     B, n = z.shape
     K = n // d
     f = gamma[:, None] * T * z
-    g = ((A @ f.unsqueeze(-1)).squeeze(-1) + q).view(B, K, d)[..., 1:]
-    g_norm = g.norm(dim=-1, keepdim=True)
-    scale = (A.diagonal(dim1=-2, dim2=-1).abs().amax(-1) * f.abs().amax(-1) + q.abs().amax(-1))[:, None, None]
-    sliding = (g_norm > 1e-9 * scale.clamp_min(1e-300)) & zero_mu[..., None]
-    zk = z.view(B, K, d)
-    zt = torch.where(sliding, -zk[..., :1] * g / g_norm.clamp_min(1e-300), zk[..., 1:])
-    speed = torch.where(sliding[..., 0], g_norm[..., 0], torch.zeros_like(g_norm[..., 0]))
-    return torch.cat([zk[..., :1], zt], -1).reshape(B, n), speed
+    g = (np.matmul(A, f[..., None])[..., 0] + q).reshape(B, K, d)[..., 1:]
+    g_norm = np.sqrt((g * g).sum(-1, keepdims=True))
+    scale = (np.abs(A.diagonal(axis1=-2, axis2=-1)).max(-1) * np.abs(f).max(-1) + np.abs(q).max(-1))[:, None, None]
+    sliding = (g_norm > 1e-9 * np.maximum(scale, 1e-300)) & zero_mu[..., None]
+    zk = z.reshape(B, K, d)
+    zt = np.where(sliding, -zk[..., :1] * g / np.maximum(g_norm, 1e-300), zk[..., 1:])
+    speed = np.where(sliding[..., 0], g_norm[..., 0], 0.0)
+    return np.ascontiguousarray(np.concatenate([zk[..., :1], zt], -1).reshape(B, n)), speed

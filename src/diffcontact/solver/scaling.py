@@ -1,4 +1,4 @@
-"""The substitution f = γ·S·D·z that turns a batch of contact cone QPs into the standard form of ``ipm.py``
+"""The substitution f = γ·S·D·z that turns a batch of contact cone QPs into the standard form of ``lanes.py``
 (compiled: one pass over the data instead of some forty small tensor operations).
 
 Per batch element, with contact k's rows i = k·d … k·d + d − 1:

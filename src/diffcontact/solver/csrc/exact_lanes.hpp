@@ -56,17 +56,17 @@ struct Exact {
   }
 };
 
-// A ray / cone whose multiplier is negligible next to its slack (exact._weak_ray, exact._weak_cone).
-static inline M weak_ray(V s, V lam) { return lam <= 1e-6 * vmax(splat(1.0), vabs(s)); }
+// A ray / cone whose multiplier is negligible next to its slack (api.h; in Python exact._weak_ray, exact._weak_cone).
+static inline M weak_ray(V s, V lam) { return lam <= WEAK_TOL * vmax(splat(1.0), vabs(s)); }
 template <int D>
 static inline M weak_cone(const V* s, const V* lam) {
   V ns = splat(0.0), nl = splat(0.0);
   for (int i = 0; i < D; i++) ns += s[i] * s[i], nl += lam[i] * lam[i];
-  return vsqrt(nl) <= 1e-6 * vmax(splat(1.0), vsqrt(ns));
+  return vsqrt(nl) <= WEAK_TOL * vmax(splat(1.0), vsqrt(ns));
 }
 
 // Exact KKT residuals (complementarity s∘λ = 0) at (z, s, λ) into r_*, comp_*; returns their max relative to
-// max(1, ‖z‖∞), counting any violation of the cones as well (exact._kkt_residual).
+// max(1, ‖z‖∞), counting any violation of the cones as well.
 template <int D>
 static V kkt_residual(const Work<D>& w, const V* h_l, const V* z, const V* s_l, const V* lam_l, const V* s_q,
                       const V* lam_q, V* r_z, V* r_l, V* r_q, V* comp_l, V* comp_q) {
@@ -284,7 +284,7 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
 }
 
 // Newton steps (at most `steps` factorisations) from the iterate in w (z, s_l, …) in the lanes of `run`; the
-// factors are reused for chord steps while the residual falls by 100× per step (exact._polish).  Returns the
+// factors are reused for chord steps while the residual falls by 100× per step.  Returns the
 // exact KKT residual of each lane's returned point.
 template <int D>
 static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
@@ -368,7 +368,7 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
   return res;
 }
 
-// Polish the best iterates of w in the lanes of `run` (exact.polish): a pass with every cone as it is, then, where
+// Polish the best iterates of w in the lanes of `run`: a pass with every cone as it is, then, where
 // that does not reach rounding level, a pass with the weakly active cones taken as inactive (which keeps only
 // what lowers the residual).
 template <int D>
@@ -384,7 +384,7 @@ static V polish(Exact<D>& e, Work<D>& w, int steps, M run) {
 
 // Kᵀ[u; v] = [g; 0] for the elements of one group gathered into w (P, on, onl; the solution in zb, slb, …):
 // returns the lanes where K is nonsingular, with the weakly active cones of singular lanes taken as inactive
-// (exact._adjoint_one); u in e.dx[0..n), the rays' v in e.dx[n..n+K).
+// (the dense form: exact._kkt_matrix); u in e.dx[0..n), the rays' v in e.dx[n..n+K).
 template <int D>
 static M adjoint(Exact<D>& e, Work<D>& w, const V* g) {
   const int n = e.n, N = e.N;

@@ -1,8 +1,8 @@
 // Interior-point method for many small contact cone QPs, W problems at a time in the lanes of SIMD vectors.
 //
-// The algorithm is the one of ipm.py (Mehrotra predictor–corrector, Nesterov–Todd scaling of the second-order
-// cones kept as d×d matrices and updated multiplicatively, one step of iterative refinement of every Newton
-// direction near the solution, the best iterate kept, stalls detected).  The problems of a group run in lockstep:
+// The problem is stated in lanes.py.  The method: Mehrotra's predictor–corrector with Nesterov–Todd scaling of the
+// second-order cones kept as d×d matrices and updated multiplicatively, one step of iterative refinement of every
+// Newton direction near the solution, the best iterate kept, stalls detected.  The problems of a group run in lockstep:
 // every operation acts on W problems at once, a problem that has finished stops being updated (its best iterate is
 // kept) and the group ends when all have.  Per-contact switches (a ray or cone in use or not) are lane masks.
 //
@@ -14,9 +14,6 @@ namespace NS {
 
 typedef double V __attribute__((vector_size(8 * LANES)));
 typedef long long M __attribute__((vector_size(8 * LANES)));
-typedef long long i64;
-
-enum { CONVERGED = 0, INACCURATE = 1, MAX_ITER = 2, NUMERICAL = 3, UNBOUNDED = 4 };
 
 static inline V splat(double x) { return V{} + x; }
 static inline V vsqrt(V x) {
@@ -86,7 +83,7 @@ struct Work {
   }
 };
 
-// Cholesky factor of H into L (layout of kernel._cholesky: factor below the diagonal, its transpose above,
+// Cholesky factor of H into L (layout: factor below the diagonal, its transpose above,
 // reciprocal diagonal).  Returns the lanes where H is positive definite.
 static inline M cholesky(int n, const V* H, V* L) {
   M ok = (M{} == 0);
@@ -140,7 +137,7 @@ static M factor(Work<D>& w, const V* w2l, const V* w2q, M run) {
   return cholesky(n, w.H, w.L);
 }
 
-// Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none (kernel._soc_max_step).
+// Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.
 template <int D>
 static inline V soc_max_step(const V* x, const V* dx) {
   V a = dx[0] * dx[0], b = x[0] * dx[0], r = splat(0.0);
@@ -163,7 +160,7 @@ static inline V soc_max_step(const V* x, const V* dx) {
   return sel(none, inf, best);
 }
 
-// NT scaling of one cone: W, Wi (D×D) with W λ = W⁻¹ s (kernel._nt_scaling).
+// NT scaling of one cone: W, Wi (D×D) with W λ = W⁻¹ s.
 template <int D>
 static inline void nt_scaling(const V* s, const V* lam, V* W, V* Wi) {
   V rs = splat(0.0), rl = splat(0.0);
@@ -201,7 +198,7 @@ static inline void jprod(const V* x, const V* y, V* out) {
   for (int i = 1; i < D; i++) out[i] = x[0] * y[i] + y[0] * x[i];
 }
 
-// Solve P Δz + GᵀΔλ = b_z, GΔz + Δs = b_s, λ̃∘(W⁻ᵀΔs + WΔλ) = rc (kernel._newton).
+// Solve P Δz + GᵀΔλ = b_z, GΔz + Δs = b_s, λ̃∘(W⁻ᵀΔs + WΔλ) = rc.
 template <int D>
 static void newton(Work<D>& w, const V* b_l, const V* b_q, const V* rc_l, const V* rc_q) {
   const int n = w.n, K = w.K;
@@ -257,7 +254,7 @@ static void newton(Work<D>& w, const V* b_l, const V* b_q, const V* rc_l, const 
   }
 }
 
-// max over the cones in use of −(smallest eigenvalue of sign·s) (kernel._worst)
+// max over the cones in use of −(smallest eigenvalue of sign·s)
 template <int D>
 static V worst(const Work<D>& w, double sign) {
   V r = splat(-__builtin_inf());
@@ -272,41 +269,44 @@ static V worst(const Work<D>& w, double sign) {
   return r;
 }
 
-struct Options {
-  double tol, acc_tol, margin, refine_tol;  // tol: the interior-point method's target
-  i64 max_iter;
-  double final_tol;  // what counts as converged after polishing
-  int polish_steps;  // at most this many factorisations per polishing pass (0: none)
-  bool last;         // the last pass: no element is marked for another one
+// ---- the stages of one group's interior-point method (solve_group, below) ----
+// Each is inlined into solve_group (always_inline: the compiled code, fused multiply-adds included, is that of a
+// single function).
+
+#define STAGE static inline __attribute__((always_inline))
+
+// The loop state of one group, per lane.
+struct Loop {
+  M run;                  // lanes still iterating
+  V degree;               // number of rays and cones in use (0: nothing to solve, z = 0)
+  V best_res, best_age;   // residual of the best iterate, iterations since it
+  V zmax, gap;            // max(1, ‖z‖∞) and the duality gap of the current iterate
+  V tau, step;            // centring target and step length of the current iteration
+  i64 stat[LANES], its[LANES];
 };
 
-// One group; its data gathered into w (P, c, onl, on and low in h_l as −low).  Writes the best iterate to the
-// w.*b arrays and status / iterations / residual per lane; trace[l] (T × 4 per lane, or null).
+// Initial point: the minimiser with W = I (the cones replaced by their equality), shifted into the cones by
+// `start_margin` plus how far it lies outside them (CVXOPT's rule).
 template <int D>
-static void solve_group(Work<D>& w, const Options& o, i64* status, i64* iters_out, double* res_out,
-                        double* const* trace, i64 T) {
+STAGE void initial_point(Work<D>& w, const SolveArgs& o, Loop& s) {
   const int K = w.K, n = w.n;
-  const bool soc = D > 1;
-  const V one = splat(1.0), zero = splat(0.0), inf = splat(__builtin_inf());
-  V degree = zero;
+  const V one = splat(1.0), zero = splat(0.0);
+  s.degree = zero;
   for (int k = 0; k < K; k++) {
-    degree += sel(w.onl[k], one, zero);
-    if (soc) degree += sel(w.on[k], one, zero);
+    s.degree += sel(w.onl[k], one, zero);
+    if (D > 1) s.degree += sel(w.on[k], one, zero);
   }
   // outputs of a lane that never records an iterate (no cone in use: z = 0)
   for (int i = 0; i < n; i++) w.zb[i] = zero, w.sqb[i] = zero, w.lqb[i] = zero;
   for (int k = 0; k < K; k++) w.slb[k] = one, w.llb[k] = one;
-  M run = degree > 0.0;
-  i64 stat[LANES], its[LANES];
-  for (int l = 0; l < LANES; l++) stat[l] = run[l] ? MAX_ITER : CONVERGED, its[l] = 0;
-
-  // ---- initial point: W = I ----
+  s.run = s.degree > 0.0;
+  for (int l = 0; l < LANES; l++) s.stat[l] = s.run[l] ? MAX_ITER : CONVERGED, s.its[l] = 0;
   for (int k = 0; k < K; k++) {
     w.w2l[k] = one;
     for (int i = 0; i < D; i++)
       for (int j = 0; j < D; j++) w.w2q[(k * D + i) * D + j] = splat(i == j ? 1.0 : 0.0);
   }
-  factor(w, w.w2l, w.w2q, run);
+  factor(w, w.w2l, w.w2q, s.run);
   for (int i = 0; i < n; i++) w.b_z[i] = -w.c[i];
   for (int k = 0; k < K; k++) w.b_z[k * D] -= w.h_l[k];  // + Gᵀh, G = −e_n on the ray (h_l = 0 if unused)
   chol_solve(n, w.L, w.b_z, w.z);
@@ -315,260 +315,338 @@ static void solve_group(Work<D>& w, const Options& o, i64* status, i64* iters_ou
     for (int i = 0; i < D; i++) w.s_q[k * D + i] = sel(w.on[k], w.z[k * D + i], i == 0 ? one : zero);
   }
   V shift_s = worst(w, 1.0), shift_l = worst(w, -1.0);
-  V add_s = sel(shift_s >= -1e-8, o.margin + shift_s, zero);
-  V add_l = sel(shift_l >= -1e-8, o.margin + shift_l, zero);
+  V add_s = sel(shift_s >= -1e-8, o.start_margin + shift_s, zero);
+  V add_l = sel(shift_l >= -1e-8, o.start_margin + shift_l, zero);
   for (int k = 0; k < K; k++) {
     w.lam_l[k] = sel(w.onl[k], -w.s_l[k] + add_l, one);
     w.s_l[k] = sel(w.onl[k], w.s_l[k] + add_s, one);
     for (int i = 0; i < D; i++) {
-      V* s = w.s_q + k * D + i;
+      V* sq = w.s_q + k * D + i;
       V* l = w.lam_q + k * D + i;
       V e = i == 0 ? one : zero;
       M use = w.on[k];  // (never set for D = 1)
-      *l = sel(use, -*s + (i == 0 ? add_l : zero), e);
-      *s = sel(use, *s + (i == 0 ? add_s : zero), e);
+      *l = sel(use, -*sq + (i == 0 ? add_l : zero), e);
+      *sq = sel(use, *sq + (i == 0 ? add_s : zero), e);
     }
   }
-  if (soc)
-    for (int k = 0; k < K; k++) {
+}
+
+// NT scaling of the cones at the initial point, and the scaled point λ̃ = W λ.
+template <int D>
+STAGE void initial_scaling(Work<D>& w) {
+  if (D > 1)
+    for (int k = 0; k < w.K; k++) {
       nt_scaling<D>(w.s_q + k * D, w.lam_q + k * D, w.Wq + k * D * D, w.Wqi + k * D * D);
       for (int i = 0; i < D; i++) {
-        V t = zero;
+        V t = splat(0.0);
         for (int j = 0; j < D; j++) t += w.Wq[k * D * D + i * D + j] * w.lam_q[k * D + j];
         w.lt_q[k * D + i] = t;
       }
     }
+}
 
-  V best_res = inf, best_age = zero, tau = zero, step = zero;
-  for (i64 it = 0; it <= o.max_iter; it++) {
-    // ---- residuals ----
-    V zmax = one;
-    for (int i = 0; i < n; i++) {
-      V t = w.c[i];
-      for (int j = 0; j < n; j++) t += w.P[i * n + j] * w.z[j];
-      w.r_z[i] = t;
-      zmax = vmax(zmax, vabs(w.z[i]));
-    }
-    V pres = zero, gap = zero;
-    for (int k = 0; k < K; k++) {
-      w.r_z[k * D] -= sel(w.onl[k], w.lam_l[k], zero);
-      w.r_l[k] = sel(w.onl[k], -w.z[k * D] + w.s_l[k] - w.h_l[k], zero);
-      pres = vmax(pres, vabs(w.r_l[k]));
-      gap += sel(w.onl[k], w.s_l[k] * w.lam_l[k], zero);
-      for (int i = 0; i < D; i++) {
-        int r = k * D + i;
-        if (soc) w.r_z[r] -= sel(w.on[k], w.lam_q[r], zero);
-        w.r_q[r] = soc ? sel(w.on[k], -w.z[r] + w.s_q[r], zero) : zero;
-        pres = vmax(pres, vabs(w.r_q[r]));
-        if (soc) gap += sel(w.on[k], w.s_q[r] * w.lam_q[r], zero);
-      }
-    }
-    V dres = zero;
-    for (int i = 0; i < n; i++) dres = vmax(dres, vabs(w.r_z[i]));
-    V res = vmax(vmax(pres, dres), gap) / zmax;
-    if (it < T)
-      for (int l = 0; l < LANES; l++)
-        if (run[l] && trace[l]) {
-          double* tr = trace[l] + 4 * it;
-          tr[0] = pres[l], tr[1] = dres[l], tr[2] = gap[l], tr[3] = step[l];
-        }
-    M fin = finite(res);
-    run &= fin;  // a non-finite residual ends the lane (status by its best iterate, below)
-    M better = run & (res < best_res);
-    if (any(better)) {
-      best_res = sel(better, res, best_res);
-      for (int i = 0; i < n; i++) {
-        w.zb[i] = sel(better, w.z[i], w.zb[i]);
-        w.sqb[i] = sel(better, w.s_q[i], w.sqb[i]);
-        w.lqb[i] = sel(better, w.lam_q[i], w.lqb[i]);
-      }
-      for (int k = 0; k < K; k++) {
-        w.slb[k] = sel(better, w.s_l[k], w.slb[k]);
-        w.llb[k] = sel(better, w.lam_l[k], w.llb[k]);
-      }
-    }
-    best_age = sel(better, zero, best_age + 1.0);
-    M conv = run & (res <= o.tol);
-    M unb = run & ~conv & (zmax > 1e12);
-    for (int l = 0; l < LANES; l++) {
-      if (conv[l]) stat[l] = CONVERGED;
-      if (unb[l]) stat[l] = UNBOUNDED;
-    }
-    run &= ~conv & ~unb & (best_age < 5.0);
-    if (it == o.max_iter || !any(run)) break;
-    for (int l = 0; l < LANES; l++) its[l] += run[l] ? 1 : 0;
-
-    // ---- scaling and factorisation ----
-    for (int k = 0; k < K; k++) {
-      w.w2l[k] = w.lam_l[k] / w.s_l[k];
-      w.lt_l[k] = vsqrt(w.s_l[k] * w.lam_l[k]);
-      if (soc) {
-        const V* Wi = w.Wqi + k * D * D;
-        for (int i = 0; i < D; i++)
-          for (int j = 0; j < D; j++) {
-            V t = zero;
-            for (int m = 0; m < D; m++) t += Wi[i * D + m] * Wi[j * D + m];
-            w.w2q[(k * D + i) * D + j] = t;
-          }
-      }
-    }
-    M ok = factor(w, w.w2l, w.w2q, run);
-    M bad = run & ~ok;
-    for (int l = 0; l < LANES; l++)
-      if (bad[l]) stat[l] = NUMERICAL;
-    run &= ok;
-    if (!any(run)) break;
-
-    M refine = gap < o.refine_tol * zmax;
-    for (int phase = 0; phase < 2; phase++) {
-      // complementarity right-hand side
-      for (int k = 0; k < K; k++) {
-        w.rc_l[k] = -w.lt_l[k] * w.lt_l[k] + (phase ? tau - w.A_dsl[k] * w.A_dll[k] : zero);
-        if (soc) {
-          V t1[D], t2[D];
-          jprod<D>(w.lt_q + k * D, w.lt_q + k * D, t1);
-          if (phase) jprod<D>(w.A_dsq + k * D, w.A_dlq + k * D, t2);
-          for (int i = 0; i < D; i++)
-            w.rc_q[k * D + i] = -t1[i] + (phase ? -t2[i] + (i == 0 ? tau : zero) : zero);
-        }
-      }
-      // first solve: b = −r
-      for (int i = 0; i < n; i++) w.b_z[i] = -w.r_z[i], w.e_q[i] = -w.r_q[i];
-      for (int k = 0; k < K; k++) w.e_l[k] = -w.r_l[k];
-      newton(w, w.e_l, w.e_q, w.rc_l, w.rc_q);
-      for (int i = 0; i < n; i++) w.dz2[i] = w.dz[i], w.A_dsq[i] = w.dst_q[i], w.A_dlq[i] = w.dlt_q[i];
-      for (int k = 0; k < K; k++) w.A_dsl[k] = w.ds_l[k], w.A_dll[k] = w.dl_l[k];
-      if (any(run & refine)) {
-        // refinement (near the solution, where W is badly conditioned): residuals of the unscaled equations
-        for (int i = 0; i < n; i++) {
-          V t = -w.r_z[i];
-          for (int j = 0; j < n; j++) t -= w.P[i * n + j] * w.dz[j];
-          w.b_z[i] = t;
-        }
-        for (int k = 0; k < K; k++) {
-          w.b_z[k * D] += sel(w.onl[k], w.dl_l[k], zero);
-          w.e_l[k] = sel(w.onl[k], -w.r_l[k] + w.dz[k * D] - w.ds_l[k], zero);
-          w.ec_l[k] = sel(w.onl[k],
-                          w.rc_l[k] - w.lt_l[k] * (w.ds_l[k] * w.lt_l[k] / w.s_l[k] + w.dl_l[k] * w.s_l[k] / w.lt_l[k]),
-                          zero);
-          if (soc) {
-            const V* Wq = w.Wq + k * D * D;
-            const V* Wqi = w.Wqi + k * D * D;
-            V t2[D], t1[D];
-            for (int i = 0; i < D; i++) {
-              V dlq = zero, dsq = zero;
-              for (int j = 0; j < D; j++) {
-                dlq += Wqi[i * D + j] * w.dlt_q[k * D + j];
-                dsq += Wq[j * D + i] * w.dst_q[k * D + j];
-              }
-              w.b_z[k * D + i] += sel(w.on[k], dlq, zero);
-              w.e_q[k * D + i] = sel(w.on[k], -w.r_q[k * D + i] + w.dz[k * D + i] - dsq, zero);
-              t2[i] = w.dst_q[k * D + i] + w.dlt_q[k * D + i];
-            }
-            jprod<D>(w.lt_q + k * D, t2, t1);
-            for (int i = 0; i < D; i++) w.ec_q[k * D + i] = sel(w.on[k], w.rc_q[k * D + i] - t1[i], zero);
-          } else {
-            for (int i = 0; i < D; i++) w.e_q[k * D + i] = w.ec_q[k * D + i] = zero;
-          }
-        }
-        newton(w, w.e_l, w.e_q, w.ec_l, w.ec_q);
-        for (int i = 0; i < n; i++) {
-          w.dz[i] = sel(refine, w.dz[i] + w.dz2[i], w.dz2[i]);
-          w.A_dsq[i] += sel(refine, w.dst_q[i], zero);
-          w.A_dlq[i] += sel(refine, w.dlt_q[i], zero);
-        }
-        for (int k = 0; k < K; k++) {
-          w.A_dsl[k] += sel(refine, w.ds_l[k], zero);
-          w.A_dll[k] += sel(refine, w.dl_l[k], zero);
-        }
-      } else {
-        for (int i = 0; i < n; i++) w.dz[i] = w.dz2[i];
-      }
-      for (int i = 0; i < n; i++) w.A_dz[i] = w.dz[i];
-      // step length
-      V alpha = inf;
-      for (int k = 0; k < K; k++) {
-        M u = w.onl[k];
-        alpha = sel(u & (w.A_dsl[k] < 0.0), vmin(alpha, -w.s_l[k] / w.A_dsl[k]), alpha);
-        alpha = sel(u & (w.A_dll[k] < 0.0), vmin(alpha, -w.lam_l[k] / w.A_dll[k]), alpha);
-        if (soc) {
-          V a1 = soc_max_step<D>(w.lt_q + k * D, w.A_dsq + k * D);
-          V a2 = soc_max_step<D>(w.lt_q + k * D, w.A_dlq + k * D);
-          alpha = sel(w.on[k], vmin(alpha, vmin(a1, a2)), alpha);
-        }
-      }
-      if (phase == 0) {
-        V a_aff = vmin(alpha, one);
-        V gap_aff = zero;
-        for (int k = 0; k < K; k++) {
-          gap_aff += sel(w.onl[k], (w.s_l[k] + a_aff * w.A_dsl[k]) * (w.lam_l[k] + a_aff * w.A_dll[k]), zero);
-          if (soc)
-            for (int i = 0; i < D; i++) {
-              int r = k * D + i;
-              gap_aff += sel(w.on[k], (w.lt_q[r] + a_aff * w.A_dsq[r]) * (w.lt_q[r] + a_aff * w.A_dlq[r]), zero);
-            }
-        }
-        V sg = vmin(vmax(gap_aff / vmax(gap, splat(1e-300)), zero), one);
-        V sigma = sg * sg * sg;
-        // a short last step: the iterate is badly centred, so centre more (kernel.py)
-        if (it > 0) sigma = sel(step < 0.5, vmax(sigma, splat(0.5)), sigma);
-        tau = sigma * gap / sel(degree > 0.0, degree, one);
-      } else {
-        step = vmin(0.99 * alpha, one);
-      }
-    }
-    // ---- update ----
-    for (int i = 0; i < n; i++) w.z[i] += step * w.A_dz[i];
-    for (int k = 0; k < K; k++) {
-      w.s_l[k] += sel(w.onl[k], step * w.A_dsl[k], zero);
-      w.lam_l[k] += sel(w.onl[k], step * w.A_dll[k], zero);
-      if (soc) {
-        V* Wq = w.Wq + k * D * D;
-        V* Wqi = w.Wqi + k * D * D;
-        V ts[D], tl[D], Ws[D * D], Wsi[D * D];
-        for (int i = 0; i < D; i++) {
-          V ds = zero, dl = zero;
-          for (int j = 0; j < D; j++) {
-            ds += Wq[j * D + i] * w.A_dsq[k * D + j];
-            dl += Wqi[i * D + j] * w.A_dlq[k * D + j];
-          }
-          w.s_q[k * D + i] += sel(w.on[k], step * ds, zero);
-          w.lam_q[k * D + i] += sel(w.on[k], step * dl, zero);
-          ts[i] = w.lt_q[k * D + i] + step * w.A_dsq[k * D + i];  // W⁻ᵀs⁺
-          tl[i] = w.lt_q[k * D + i] + step * w.A_dlq[k * D + i];  // Wλ⁺
-        }
-        nt_scaling<D>(ts, tl, Ws, Wsi);
-        for (int i = 0; i < D; i++) {
-          V t = zero;
-          for (int j = 0; j < D; j++) t += Ws[i * D + j] * tl[j];
-          w.lt_q[k * D + i] = sel(w.on[k], t, w.lt_q[k * D + i]);
-        }
-        V Wn[D * D], Wni[D * D];
-        for (int i = 0; i < D; i++)
-          for (int j = 0; j < D; j++) {
-            V a = zero, b = zero;
-            for (int m = 0; m < D; m++) {
-              a += Ws[i * D + m] * Wq[m * D + j];
-              b += Wqi[i * D + m] * Wsi[m * D + j];
-            }
-            Wn[i * D + j] = a;
-            Wni[i * D + j] = b;
-          }
-        for (int i = 0; i < D * D; i++) {
-          Wq[i] = sel(w.on[k], Wn[i], Wq[i]);
-          Wqi[i] = sel(w.on[k], Wni[i], Wqi[i]);
-        }
-      }
+// Residuals of the current iterate into w.r_z, r_l, r_q; s.zmax and s.gap; the primal and dual residuals
+// (max norms) into pres, dres.  Returns the scaled residual max(pres, dres, gap) / zmax.
+template <int D>
+STAGE V residuals(Work<D>& w, Loop& s, V& pres, V& dres) {
+  const int K = w.K, n = w.n;
+  const bool soc = D > 1;
+  const V zero = splat(0.0);
+  V zmax = splat(1.0);
+  for (int i = 0; i < n; i++) {
+    V t = w.c[i];
+    for (int j = 0; j < n; j++) t += w.P[i * n + j] * w.z[j];
+    w.r_z[i] = t;
+    zmax = vmax(zmax, vabs(w.z[i]));
+  }
+  V gap = zero;
+  pres = zero;
+  for (int k = 0; k < K; k++) {
+    w.r_z[k * D] -= sel(w.onl[k], w.lam_l[k], zero);
+    w.r_l[k] = sel(w.onl[k], -w.z[k * D] + w.s_l[k] - w.h_l[k], zero);
+    pres = vmax(pres, vabs(w.r_l[k]));
+    gap += sel(w.onl[k], w.s_l[k] * w.lam_l[k], zero);
+    for (int i = 0; i < D; i++) {
+      int r = k * D + i;
+      if (soc) w.r_z[r] -= sel(w.on[k], w.lam_q[r], zero);
+      w.r_q[r] = soc ? sel(w.on[k], -w.z[r] + w.s_q[r], zero) : zero;
+      pres = vmax(pres, vabs(w.r_q[r]));
+      if (soc) gap += sel(w.on[k], w.s_q[r] * w.lam_q[r], zero);
     }
   }
+  dres = zero;
+  for (int i = 0; i < n; i++) dres = vmax(dres, vabs(w.r_z[i]));
+  s.zmax = zmax, s.gap = gap;
+  return vmax(vmax(pres, dres), gap) / zmax;
+}
+
+// Keep the best iterate; end the lanes that converged (res ≤ ipm_tol), diverged (‖z‖∞ > 1e12: UNBOUNDED), went
+// non-finite or stalled (no better iterate in 5 iterations).
+template <int D>
+STAGE void keep_best(Work<D>& w, const SolveArgs& o, Loop& s, V res) {
+  const int K = w.K, n = w.n;
+  s.run &= finite(res);  // a non-finite residual ends the lane (status by its best iterate, in finish)
+  M better = s.run & (res < s.best_res);
+  if (any(better)) {
+    s.best_res = sel(better, res, s.best_res);
+    for (int i = 0; i < n; i++) {
+      w.zb[i] = sel(better, w.z[i], w.zb[i]);
+      w.sqb[i] = sel(better, w.s_q[i], w.sqb[i]);
+      w.lqb[i] = sel(better, w.lam_q[i], w.lqb[i]);
+    }
+    for (int k = 0; k < K; k++) {
+      w.slb[k] = sel(better, w.s_l[k], w.slb[k]);
+      w.llb[k] = sel(better, w.lam_l[k], w.llb[k]);
+    }
+  }
+  s.best_age = sel(better, splat(0.0), s.best_age + 1.0);
+  M conv = s.run & (res <= o.ipm_tol);
+  M unb = s.run & ~conv & (s.zmax > 1e12);
   for (int l = 0; l < LANES; l++) {
-    double r = best_res[l];
-    if (stat[l] == MAX_ITER && r <= o.acc_tol) stat[l] = INACCURATE;
-    if (degree[l] > 0.0 && !__builtin_isfinite(r)) stat[l] = NUMERICAL;
-    status[l] = stat[l];
-    iters_out[l] = its[l];
-    res_out[l] = degree[l] > 0.0 ? r : 0.0;
+    if (conv[l]) s.stat[l] = CONVERGED;
+    if (unb[l]) s.stat[l] = UNBOUNDED;
+  }
+  s.run &= ~conv & ~unb & (s.best_age < 5.0);
+}
+
+// Scaling and factorisation: W⁻² of the rays and cones at the current iterate, H = P + GᵀW⁻²G and its Cholesky
+// factor; a lane whose H is not positive definite even after a shift ends (NUMERICAL).
+template <int D>
+STAGE void scale_and_factor(Work<D>& w, Loop& s) {
+  for (int k = 0; k < w.K; k++) {
+    w.w2l[k] = w.lam_l[k] / w.s_l[k];
+    w.lt_l[k] = vsqrt(w.s_l[k] * w.lam_l[k]);
+    if (D > 1) {
+      const V* Wi = w.Wqi + k * D * D;
+      for (int i = 0; i < D; i++)
+        for (int j = 0; j < D; j++) {
+          V t = splat(0.0);
+          for (int m = 0; m < D; m++) t += Wi[i * D + m] * Wi[j * D + m];
+          w.w2q[(k * D + i) * D + j] = t;
+        }
+    }
+  }
+  M ok = factor(w, w.w2l, w.w2q, s.run);
+  M bad = s.run & ~ok;
+  for (int l = 0; l < LANES; l++)
+    if (bad[l]) s.stat[l] = NUMERICAL;
+  s.run &= ok;
+}
+
+// Iterative refinement of the direction in w.dz2, A_ds*, A_dl* (near the solution, where W is badly
+// conditioned): one more Newton solve on the residuals of the unscaled equations, added in the lanes of `refine`.
+template <int D>
+STAGE void refine_direction(Work<D>& w, M refine) {
+  const int K = w.K, n = w.n;
+  const V zero = splat(0.0);
+  for (int i = 0; i < n; i++) {
+    V t = -w.r_z[i];
+    for (int j = 0; j < n; j++) t -= w.P[i * n + j] * w.dz[j];
+    w.b_z[i] = t;
+  }
+  for (int k = 0; k < K; k++) {
+    w.b_z[k * D] += sel(w.onl[k], w.dl_l[k], zero);
+    w.e_l[k] = sel(w.onl[k], -w.r_l[k] + w.dz[k * D] - w.ds_l[k], zero);
+    w.ec_l[k] = sel(w.onl[k],
+                    w.rc_l[k] - w.lt_l[k] * (w.ds_l[k] * w.lt_l[k] / w.s_l[k] + w.dl_l[k] * w.s_l[k] / w.lt_l[k]),
+                    zero);
+    if (D > 1) {
+      const V* Wq = w.Wq + k * D * D;
+      const V* Wqi = w.Wqi + k * D * D;
+      V t2[D], t1[D];
+      for (int i = 0; i < D; i++) {
+        V dlq = zero, dsq = zero;
+        for (int j = 0; j < D; j++) {
+          dlq += Wqi[i * D + j] * w.dlt_q[k * D + j];
+          dsq += Wq[j * D + i] * w.dst_q[k * D + j];
+        }
+        w.b_z[k * D + i] += sel(w.on[k], dlq, zero);
+        w.e_q[k * D + i] = sel(w.on[k], -w.r_q[k * D + i] + w.dz[k * D + i] - dsq, zero);
+        t2[i] = w.dst_q[k * D + i] + w.dlt_q[k * D + i];
+      }
+      jprod<D>(w.lt_q + k * D, t2, t1);
+      for (int i = 0; i < D; i++) w.ec_q[k * D + i] = sel(w.on[k], w.rc_q[k * D + i] - t1[i], zero);
+    } else {
+      for (int i = 0; i < D; i++) w.e_q[k * D + i] = w.ec_q[k * D + i] = zero;
+    }
+  }
+  newton(w, w.e_l, w.e_q, w.ec_l, w.ec_q);
+  for (int i = 0; i < n; i++) {
+    w.dz[i] = sel(refine, w.dz[i] + w.dz2[i], w.dz2[i]);
+    w.A_dsq[i] += sel(refine, w.dst_q[i], zero);
+    w.A_dlq[i] += sel(refine, w.dlt_q[i], zero);
+  }
+  for (int k = 0; k < K; k++) {
+    w.A_dsl[k] += sel(refine, w.ds_l[k], zero);
+    w.A_dll[k] += sel(refine, w.dl_l[k], zero);
   }
 }
+
+// The Newton direction of the predictor (corrector = false: complementarity target 0) or of the corrector (its
+// second-order term and the centring target τ) into w.A_dz, A_ds*, A_dl*.
+template <int D>
+STAGE void direction(Work<D>& w, const Loop& s, bool corrector, M refine) {
+  const int K = w.K, n = w.n;
+  const V zero = splat(0.0);
+  for (int k = 0; k < K; k++) {  // complementarity right-hand side
+    w.rc_l[k] = -w.lt_l[k] * w.lt_l[k] + (corrector ? s.tau - w.A_dsl[k] * w.A_dll[k] : zero);
+    if (D > 1) {
+      V t1[D], t2[D];
+      jprod<D>(w.lt_q + k * D, w.lt_q + k * D, t1);
+      if (corrector) jprod<D>(w.A_dsq + k * D, w.A_dlq + k * D, t2);
+      for (int i = 0; i < D; i++)
+        w.rc_q[k * D + i] = -t1[i] + (corrector ? -t2[i] + (i == 0 ? s.tau : zero) : zero);
+    }
+  }
+  for (int i = 0; i < n; i++) w.b_z[i] = -w.r_z[i], w.e_q[i] = -w.r_q[i];  // b = −r
+  for (int k = 0; k < K; k++) w.e_l[k] = -w.r_l[k];
+  newton(w, w.e_l, w.e_q, w.rc_l, w.rc_q);
+  for (int i = 0; i < n; i++) w.dz2[i] = w.dz[i], w.A_dsq[i] = w.dst_q[i], w.A_dlq[i] = w.dlt_q[i];
+  for (int k = 0; k < K; k++) w.A_dsl[k] = w.ds_l[k], w.A_dll[k] = w.dl_l[k];
+  if (any(s.run & refine)) {
+    refine_direction(w, refine);
+  } else {
+    for (int i = 0; i < n; i++) w.dz[i] = w.dz2[i];
+  }
+  for (int i = 0; i < n; i++) w.A_dz[i] = w.dz[i];
+}
+
+// Step length: the largest α ≥ 0 that keeps the rays and cones (scaled: λ̃ + α·A_ds, λ̃ + α·A_dl) inside; inf if
+// the direction never leaves them.
+template <int D>
+STAGE V step_length(const Work<D>& w) {
+  V alpha = splat(__builtin_inf());
+  for (int k = 0; k < w.K; k++) {
+    M u = w.onl[k];
+    alpha = sel(u & (w.A_dsl[k] < 0.0), vmin(alpha, -w.s_l[k] / w.A_dsl[k]), alpha);
+    alpha = sel(u & (w.A_dll[k] < 0.0), vmin(alpha, -w.lam_l[k] / w.A_dll[k]), alpha);
+    if (D > 1) {
+      V a1 = soc_max_step<D>(w.lt_q + k * D, w.A_dsq + k * D);
+      V a2 = soc_max_step<D>(w.lt_q + k * D, w.A_dlq + k * D);
+      alpha = sel(w.on[k], vmin(alpha, vmin(a1, a2)), alpha);
+    }
+  }
+  return alpha;
+}
+
+// Predictor: from the affine direction (in w) and its step length α, Mehrotra's centring target for the corrector,
+// τ = σ·gap/degree with σ = (gap_aff/gap)³, gap_aff the gap the affine step would reach.
+template <int D>
+STAGE void predictor(const Work<D>& w, Loop& s, i64 it, V alpha) {
+  const V zero = splat(0.0), one = splat(1.0);
+  V a_aff = vmin(alpha, one);
+  V gap_aff = zero;
+  for (int k = 0; k < w.K; k++) {
+    gap_aff += sel(w.onl[k], (w.s_l[k] + a_aff * w.A_dsl[k]) * (w.lam_l[k] + a_aff * w.A_dll[k]), zero);
+    if (D > 1)
+      for (int i = 0; i < D; i++) {
+        int r = k * D + i;
+        gap_aff += sel(w.on[k], (w.lt_q[r] + a_aff * w.A_dsq[r]) * (w.lt_q[r] + a_aff * w.A_dlq[r]), zero);
+      }
+  }
+  V sg = vmin(vmax(gap_aff / vmax(s.gap, splat(1e-300)), zero), one);
+  V sigma = sg * sg * sg;
+  // a short last step: the iterate is badly centred, so centre more
+  if (it > 0) sigma = sel(s.step < 0.5, vmax(sigma, splat(0.5)), sigma);
+  s.tau = sigma * s.gap / sel(s.degree > 0.0, s.degree, one);
+}
+
+// Corrector: the step along the combined direction, 0.99 of its step length α (at most 1).
+STAGE void corrector(Loop& s, V alpha) { s.step = vmin(0.99 * alpha, splat(1.0)); }
+
+// Update: the iterate moved by the step; the cones' NT scaling updated multiplicatively (W⁺ = W_s·W with W_s the
+// scaling of the scaled point) and the scaled point λ̃ recomputed.
+template <int D>
+STAGE void update(Work<D>& w, V step) {
+  const V zero = splat(0.0);
+  for (int i = 0; i < w.n; i++) w.z[i] += step * w.A_dz[i];
+  for (int k = 0; k < w.K; k++) {
+    w.s_l[k] += sel(w.onl[k], step * w.A_dsl[k], zero);
+    w.lam_l[k] += sel(w.onl[k], step * w.A_dll[k], zero);
+    if (D > 1) {
+      V* Wq = w.Wq + k * D * D;
+      V* Wqi = w.Wqi + k * D * D;
+      V ts[D], tl[D], Ws[D * D], Wsi[D * D];
+      for (int i = 0; i < D; i++) {
+        V ds = zero, dl = zero;
+        for (int j = 0; j < D; j++) {
+          ds += Wq[j * D + i] * w.A_dsq[k * D + j];
+          dl += Wqi[i * D + j] * w.A_dlq[k * D + j];
+        }
+        w.s_q[k * D + i] += sel(w.on[k], step * ds, zero);
+        w.lam_q[k * D + i] += sel(w.on[k], step * dl, zero);
+        ts[i] = w.lt_q[k * D + i] + step * w.A_dsq[k * D + i];  // W⁻ᵀs⁺
+        tl[i] = w.lt_q[k * D + i] + step * w.A_dlq[k * D + i];  // Wλ⁺
+      }
+      nt_scaling<D>(ts, tl, Ws, Wsi);
+      for (int i = 0; i < D; i++) {
+        V t = zero;
+        for (int j = 0; j < D; j++) t += Ws[i * D + j] * tl[j];
+        w.lt_q[k * D + i] = sel(w.on[k], t, w.lt_q[k * D + i]);
+      }
+      V Wn[D * D], Wni[D * D];
+      for (int i = 0; i < D; i++)
+        for (int j = 0; j < D; j++) {
+          V a = zero, b = zero;
+          for (int m = 0; m < D; m++) {
+            a += Ws[i * D + m] * Wq[m * D + j];
+            b += Wqi[i * D + m] * Wsi[m * D + j];
+          }
+          Wn[i * D + j] = a;
+          Wni[i * D + j] = b;
+        }
+      for (int i = 0; i < D * D; i++) {
+        Wq[i] = sel(w.on[k], Wn[i], Wq[i]);
+        Wqi[i] = sel(w.on[k], Wni[i], Wqi[i]);
+      }
+    }
+  }
+}
+
+// One group; its data gathered into w (P, c, onl, on and low in h_l as −low).  Writes the best iterate to the
+// w.*b arrays and status / iterations / residual per lane; trace[l] (T × 4 per lane, or null).
+template <int D>
+static void solve_group(Work<D>& w, const SolveArgs& o, i64* status, i64* iters_out, double* res_out,
+                        double* const* trace) {
+  Loop s;
+  initial_point(w, o, s);
+  initial_scaling(w);
+  s.best_res = splat(__builtin_inf()), s.best_age = splat(0.0), s.tau = splat(0.0), s.step = splat(0.0);
+  for (i64 it = 0; it <= o.max_iter; it++) {
+    V pres, dres;
+    V res = residuals(w, s, pres, dres);
+    if (it < o.T)
+      for (int l = 0; l < LANES; l++)
+        if (s.run[l] && trace[l]) {
+          double* tr = trace[l] + 4 * it;
+          tr[0] = pres[l], tr[1] = dres[l], tr[2] = s.gap[l], tr[3] = s.step[l];
+        }
+    keep_best(w, o, s, res);
+    if (it == o.max_iter || !any(s.run)) break;
+    for (int l = 0; l < LANES; l++) s.its[l] += s.run[l] ? 1 : 0;
+    scale_and_factor(w, s);
+    if (!any(s.run)) break;
+    M refine = s.gap < o.refine_tol * s.zmax;
+    for (int phase = 0; phase < 2; phase++) {  // the predictor's direction, then the corrector's
+      direction(w, s, phase == 1, refine);
+      V alpha = step_length(w);
+      if (phase == 0)
+        predictor(w, s, it, alpha);
+      else
+        corrector(s, alpha);
+    }
+    update(w, s.step);
+  }
+  for (int l = 0; l < LANES; l++) {  // the status by the best iterate
+    double r = s.best_res[l];
+    if (s.stat[l] == MAX_ITER && r <= o.acceptable_tol) s.stat[l] = INACCURATE;
+    if (s.degree[l] > 0.0 && !__builtin_isfinite(r)) s.stat[l] = NUMERICAL;
+    status[l] = s.stat[l];
+    iters_out[l] = s.its[l];
+    res_out[l] = s.degree[l] > 0.0 ? r : 0.0;
+  }
+}
+
+#undef STAGE
 
 }  // namespace NS

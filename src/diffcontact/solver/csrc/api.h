@@ -1,0 +1,84 @@
+// The boundary between the compiled kernel and Python: the one definition of the status codes, the failure rule,
+// the weak-cone threshold and the argument structs of the two entry points.  lanes.py mirrors the structs with
+// ctypes under the same field names and checks, when it loads the library, that its copies of these facts agree
+// with diffcontact_constants() (the sizes of the structs included).
+//
+// Plain C declarations, no headers: included by the per-ISA translation units (which switch the target first)
+// as well as by lanes_module.cpp.
+#ifndef DIFFCONTACT_API_H
+#define DIFFCONTACT_API_H
+
+typedef long long i64;
+
+// Per-element status (diffcontact.solver.Status).  The first four are reported by the interior-point method; the
+// last by the least-norm stage of singular problems (flat.py) as well.
+enum {
+  CONVERGED = 0,   // residual after polishing at most final_tol
+  INACCURATE = 1,  // not converged, residual at most acceptable_tol (usable)
+  MAX_ITER = 2,    // not converged, residual above acceptable_tol
+  NUMERICAL = 3,   // non-finite values or a failed factorisation
+  UNBOUNDED = 4,   // the objective is unbounded below on the cones
+};
+// The failure rule: an element whose status is at least this one has no usable solution (returned as zeros).
+enum { FIRST_FAILURE = MAX_ITER };
+// A ray or cone whose multiplier is at most WEAK_TOL·max(1, ‖slack‖) is weakly active (a contact exactly at a
+// stick/slip or touch/separate switch): polishing and the backward pass may take it as inactive.
+#define WEAK_TOL 1e-6
+// Version of this interface: raise it with any change of the structs or the entry points.
+enum { API_VERSION = 2 };
+
+// diffcontact_ipm_solve: the interior-point method to ipm_tol, then (polish_steps > 0) polishing, of the batch
+// elements idx[start..stop) of B problems in the standard form of lanes.py (K contacts of dimension d, n = K·d;
+// arrays C-contiguous, row-major).  Writes the rows idx[start..stop) of the outputs.
+struct SolveArgs {
+  const double* P;           // (B, n, n)
+  const double* c;           // (B, n)
+  const double* lower;       // (B, K)
+  const unsigned char* on;   // (B, K) cones in use
+  const unsigned char* on_l; // (B, K) rays in use
+  i64 K, d;
+  const i64* idx;            // the elements to solve
+  double ipm_tol;            // target of the interior-point method (before polishing)
+  double final_tol;          // residual at most this after polishing: CONVERGED
+  double acceptable_tol;     // else at most this: INACCURATE, else MAX_ITER
+  i64 max_iter;
+  double start_margin;       // how far inside the cones the starting point lies
+  double refine_tol;         // a gap below refine_tol·max(1, ‖z‖∞): refine the Newton directions once
+  i64 polish_steps;          // at most this many factorisations per polishing pass (0: no polishing)
+  double* z;                 // (B, n) outputs: solution,
+  double* s_l;               // (B, K) slacks and multipliers of the rays,
+  double* lam_l;             // (B, K)
+  double* s_q;               // (B, K, d) of the cones,
+  double* lam_q;             // (B, K, d)
+  i64* status;               // (B,) status codes above,
+  i64* iterations;           // (B,) interior-point iterations,
+  double* residual;          // (B,) scaled KKT residual of the returned point
+  double* trace;             // (B, T, 4) per iteration: primal, dual residual, gap, step (T may be 0)
+  i64 T;
+};
+
+// diffcontact_adjoint_solve: Kᵀ[u; v] = [g; 0] (implicit.py) of the elements start … stop − 1, the weakly active
+// cones of singular elements taken as inactive.
+struct AdjointArgs {
+  const double* P;           // (B, n, n)
+  const double* s_l;         // (B, K) the solution: as SolveArgs
+  const double* lam_l;       // (B, K)
+  const double* s_q;         // (B, K, d)
+  const double* lam_q;       // (B, K, d)
+  const unsigned char* on;   // (B, K)
+  const unsigned char* on_l; // (B, K)
+  i64 K, d;
+  const double* g;           // (B, n) right-hand side
+  double* u;                 // (B, n) outputs: u,
+  double* v_l;               // (B, K) the rays' v,
+  unsigned char* ok;         // (B,) 0 where K is singular even with the weakly active cones taken as inactive
+};
+
+// What lanes.py checks on loading.
+struct Constants {
+  i64 api_version, solve_args_size, adjoint_args_size;
+  i64 converged, inaccurate, max_iter, numerical, unbounded, first_failure;
+  double weak_tol;
+};
+
+#endif
