@@ -1,0 +1,128 @@
+"""Time of impact (float64): the issue-15 ball–wall case, the scheme switch and task keys, edge cases."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffcontact.config import task_from_dict
+from diffcontact.errors import ConfigError
+from diffcontact.simulator import simulator_for
+from diffcontact.state import State
+from diffcontact.systems import BENCHMARK_TASKS, build_task
+
+F64 = torch.float64
+STATE_TOL = 1e-6  # issue 15: final state within 1e-6 of the closed form with TOI
+GRAD_TOL = 1e-4  # and its gradient within 1e-4
+
+
+def balls(masses=(1.0,), radii=(0.1,), walls=((-1.0, 0.0, 1.0),), mu=0.0, cor=1.0, gravity=0.0, dt=0.01, **extra):
+    raw = {
+        "task": {"name": "t", "system": "bouncing", "dt": dt, "frames": 10},
+        "bodies": {"kind": "point", "masses": list(masses), "radii": list(radii)},
+        "walls": {"lines": [list(w) for w in walls]},
+        "potential": {"gravity": gravity},
+        "contact": {"mu": [mu], "cor": [cor], **extra},
+    }
+    return build_task(task_from_dict(raw))
+
+
+def final_x(task, x0, v0, frames, toi):
+    """x at the last of ``frames`` frames (B, P, d) of a rollout from x0, v0 (P, d) (differentiable)."""
+    xs, _, _ = simulator_for(task, time_of_impact=toi).rollout(State(x0[None], v0[None]), task.params, task.dt, frames)
+    return xs[:, -1]
+
+
+def ball_wall(x0: float, speed: float, dt: float, toi: bool, steps: int = 100) -> tuple[float, list[float]]:
+    """Issue 15's case: m = 1, r = 0.1, wall x = 1, e = 1, T = steps·dt: x(T) and ∂x(T)/∂(x0, v)."""
+    task = balls(dt=dt)
+    p = torch.tensor([x0, speed], dtype=F64, requires_grad=True)
+    zero, half = torch.zeros((), dtype=F64), torch.tensor(0.5, dtype=F64)
+    xT = final_x(task, torch.stack([p[0], half])[None], torch.stack([p[1], zero])[None], steps + 1, toi)[0, 0, 0]
+    (grad,) = torch.autograd.grad(xT, p)
+    return xT.item(), grad.tolist()
+
+
+@pytest.mark.parametrize("dt", [0.01, 0.007])
+@pytest.mark.parametrize("x0", [0.3, 0.303])  # 0.3, dt = 0.01: the impact falls on a step boundary (t = 0.6 s)
+def test_ball_wall_time_of_impact_matches_the_closed_form(x0, dt):
+    xT, grad = ball_wall(x0, 1.0, dt, toi=True)
+    assert xT == pytest.approx(2 * 0.9 - (x0 + 100 * dt), abs=STATE_TOL)
+    assert grad == pytest.approx([-1.0, -100 * dt], abs=GRAD_TOL)
+
+
+def test_ball_wall_published_scheme_has_the_documented_gradient_error():
+    """The published scheme (issue 15, main at 9dd4a82): x0 = 0.3 gives x(T) = 0.5 and gradient (+1, +0.2)
+    instead of (−1, −1); x0 = 0.303 gives x(T) = 0.503 (closed form 0.497) and the same gradient."""
+    xT, grad = ball_wall(0.3, 1.0, 0.01, toi=False)
+    assert xT == pytest.approx(0.5, abs=1e-9)
+    assert grad == pytest.approx([1.0, 0.2], abs=1e-9)
+    xT, grad = ball_wall(0.303, 1.0, 0.01, toi=False)
+    assert xT == pytest.approx(0.503, abs=1e-9)  # a position error of 2 (x0 − 0.3): the impact's timing is lost
+    assert grad == pytest.approx([1.0, 0.2], abs=1e-9)
+
+
+def test_one_toi_step_passes_gradcheck():
+    """One step with an impact mid-step (ball and wall, e = 0.7, μ = 0.3, gravity): gradcheck in (x, v, e, μ)."""
+    task = balls(walls=((0.0, 1.0, 0.0),), mu=0.3, cor=0.7, gravity=9.81)
+    sim = simulator_for(task, time_of_impact=True)
+
+    def one_step(x, v, e, mu):
+        params = task.params.replace(e=e.expand(1), mu=mu.expand(1))
+        state, hit = sim.step(State(x, v), params, task.dt)
+        assert bool(hit.all())
+        return state.x, state.v
+
+    x = torch.tensor([[[0.3, 0.104]]], dtype=F64, requires_grad=True)
+    v = torch.tensor([[[0.4, -1.0]]], dtype=F64, requires_grad=True)
+    e = torch.tensor([0.7], dtype=F64, requires_grad=True)
+    mu = torch.tensor([0.3], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(one_step, (x, v, e, mu), eps=1e-7, atol=1e-6)
+
+
+def _step_grads(task, x, v, toi=True):
+    x = torch.tensor(x, dtype=F64, requires_grad=True)
+    v = torch.tensor(v, dtype=F64, requires_grad=True)
+    state, hit = simulator_for(task, time_of_impact=toi).step(State(x[None], v[None]), task.params, task.dt)
+    gx, gv = torch.autograd.grad((state.x.sum() + state.v.sum()), (x, v))
+    return state, bool(hit[0]), gx, gv
+
+
+def test_grazing_contact_gives_finite_gradients():
+    """A ball touching the ground (gap 0) at rest under gravity: zero normal velocity at the contact."""
+    task = balls(walls=((0.0, 1.0, 0.0),), cor=0.5, gravity=9.81)
+    state, hit, gx, gv = _step_grads(task, [[0.5, 0.1]], [[0.3, 0.0]])
+    assert hit and torch.isfinite(gx).all() and torch.isfinite(gv).all()
+    assert state.v[0, 0, 1] >= -1e-9  # not left moving into the ground
+
+
+def test_simultaneous_contacts_give_finite_gradients_and_the_corner_bounce():
+    """A ball hitting two walls at once (a corner, e = 1, frictionless): both normal velocities reverse."""
+    task = balls(walls=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)), cor=1.0)
+    state, hit, gx, gv = _step_grads(task, [[0.105, 0.105]], [[-1.0, -1.0]])
+    assert hit and torch.isfinite(gx).all() and torch.isfinite(gv).all()
+    torch.testing.assert_close(state.v[0, 0], torch.tensor([1.0, 1.0], dtype=F64), atol=1e-8, rtol=0)
+    torch.testing.assert_close(state.x[0, 0], torch.tensor([0.105, 0.105], dtype=F64), atol=1e-8, rtol=0)
+
+
+def test_contact_exactly_at_a_step_boundary_is_resolved_at_the_start_of_the_next_step():
+    task = balls(cor=1.0)
+    state, hit, gx, gv = _step_grads(task, [[0.9, 0.5]], [[1.0, 0.0]])  # gap 0 (−3e-17 by rounding), approaching
+    assert hit and torch.isfinite(gx).all() and torch.isfinite(gv).all()
+    assert state.x[0, 0, 0].item() == pytest.approx(0.89, abs=1e-12)
+    assert state.v[0, 0, 0].item() == pytest.approx(-1.0, abs=1e-8)
+
+
+def test_scheme_switch_and_task_keys():
+    assert not simulator_for(balls()).time_of_impact
+    assert simulator_for(balls(time_of_impact=True)).time_of_impact
+    assert simulator_for(balls(time_of_impact=True), time_of_impact=False).time_of_impact is False
+    for name in BENCHMARK_TASKS:  # the benchmark tasks keep the published scheme so their data stay comparable
+        assert not build_task(name).system.stepping.time_of_impact, name
+    assert not build_task("Billiards").system.stepping.time_of_impact  # see its task file
+    with pytest.raises(ConfigError, match="contact.time_of_impact = 'yes' is not true or false"):
+        balls(time_of_impact="yes")
+    raw_task = {"name": "t", "system": "bouncing", "dt": 0.01, "frames": 10, "substeps": 0}
+    with pytest.raises(ConfigError, match="task.substeps = 0 is smaller than 1"):
+        bodies = {"kind": "point", "masses": [1], "radii": [0.1]}
+        build_task(task_from_dict({"task": raw_task, "bodies": bodies, "contact": {"mu": [0.0], "cor": [1.0]}}))
