@@ -126,3 +126,36 @@ def test_scheme_switch_and_task_keys():
     with pytest.raises(ConfigError, match="task.substeps = 0 is smaller than 1"):
         bodies = {"kind": "point", "masses": [1], "radii": [0.1]}
         build_task(task_from_dict({"task": raw_task, "bodies": bodies, "contact": {"mu": [0.0], "cor": [1.0]}}))
+
+
+def test_ball_in_a_corner_with_friction_gets_the_minimum_norm_impulse():
+    """Issue 15 ambiguity (1): a ball hitting two perpendicular walls at once with friction has a singular A
+    (4 contact rows, 2 degrees of freedom), so the compression impulse is not unique and the restitution bound
+    e·f_n depends on the minimiser chosen. The solver returns the minimum-norm minimiser (solver/flat.py): checked
+    here against Clarabel's minimum-norm minimiser (tests/solver_oracle.py), in the time-of-impact step."""
+    np = pytest.importorskip("numpy")
+    pytest.importorskip("cvxpy")
+    from solver_oracle import clarabel_min_norm, clarabel_solve
+
+    from diffcontact.solver import solve_cone_qp
+
+    calls = []
+
+    def recording(A, q, mu, lower=None, active=None, **kw):
+        f = solve_cone_qp(A, q, mu, lower, active, **kw)
+        calls.append((A, q, mu, lower, f))
+        return f
+
+    task = balls(walls=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)), mu=0.5, cor=0.5)
+    sim = simulator_for(task, solver=recording, time_of_impact=True)
+    with torch.no_grad():
+        sim.step(
+            State(torch.tensor([[[0.105, 0.104]]], dtype=F64), torch.tensor([[[-1.0, -0.8]]], dtype=F64)),
+            task.params,
+            0.01,
+        )
+    A, q, mu, _, f = calls[0]  # the compression problem at the impact (both walls touch within tol)
+    assert A.shape[-1] == 4 and torch.linalg.matrix_rank(A[0]).item() == 2
+    args = (A[0].numpy(), q[0].numpy(), mu[0].numpy(), np.zeros(2), 2)
+    f_min = clarabel_min_norm(*args, clarabel_solve(*args)[0])
+    np.testing.assert_allclose(f[0].numpy(), f_min, atol=1e-6)
