@@ -27,26 +27,29 @@ def balls(masses=(1.0,), radii=(0.1,), walls=((-1.0, 0.0, 1.0),), mu=0.0, cor=1.
     return build_task(task_from_dict(raw))
 
 
-def final_x(task, x0, v0, frames, toi):
+def final_x(task, x0, v0, frames, toi, dynamics="lagrangian"):
     """x at the last of ``frames`` frames (B, P, d) of a rollout from x0, v0 (P, d) (differentiable)."""
-    xs, _, _ = simulator_for(task, time_of_impact=toi).rollout(State(x0[None], v0[None]), task.params, task.dt, frames)
+    xs, _, _ = simulator_for(task, dynamics, time_of_impact=toi).rollout(
+        State(x0[None], v0[None]), task.params, task.dt, frames
+    )
     return xs[:, -1]
 
 
-def ball_wall(x0: float, speed: float, dt: float, toi: bool, steps: int = 100) -> tuple[float, list[float]]:
+def ball_wall(x0: float, speed: float, dt: float, toi: bool, steps: int = 100, dynamics: str = "lagrangian"):
     """Issue 15's case: m = 1, r = 0.1, wall x = 1, e = 1, T = steps·dt: x(T) and ∂x(T)/∂(x0, v)."""
     task = balls(dt=dt)
     p = torch.tensor([x0, speed], dtype=F64, requires_grad=True)
     zero, half = torch.zeros((), dtype=F64), torch.tensor(0.5, dtype=F64)
-    xT = final_x(task, torch.stack([p[0], half])[None], torch.stack([p[1], zero])[None], steps + 1, toi)[0, 0, 0]
+    x0_, v0_ = torch.stack([p[0], half])[None], torch.stack([p[1], zero])[None]
+    xT = final_x(task, x0_, v0_, steps + 1, toi, dynamics)[0, 0, 0]
     (grad,) = torch.autograd.grad(xT, p)
     return xT.item(), grad.tolist()
 
 
-@pytest.mark.parametrize("dt", [0.01, 0.007])
+@pytest.mark.parametrize("dt, dynamics", [(0.01, "lagrangian"), (0.007, "lagrangian"), (0.01, "hamiltonian")])
 @pytest.mark.parametrize("x0", [0.3, 0.303])  # 0.3, dt = 0.01: the impact falls on a step boundary (t = 0.6 s)
-def test_ball_wall_time_of_impact_matches_the_closed_form(x0, dt):
-    xT, grad = ball_wall(x0, 1.0, dt, toi=True)
+def test_ball_wall_time_of_impact_matches_the_closed_form(x0, dt, dynamics):
+    xT, grad = ball_wall(x0, 1.0, dt, toi=True, dynamics=dynamics)
     assert xT == pytest.approx(2 * 0.9 - (x0 + 100 * dt), abs=STATE_TOL)
     assert grad == pytest.approx([-1.0, -100 * dt], abs=GRAD_TOL)
 
