@@ -162,3 +162,28 @@ def test_ball_in_a_corner_with_friction_gets_the_minimum_norm_impulse():
     args = (A[0].numpy(), q[0].numpy(), mu[0].numpy(), np.zeros(2), 2)
     f_min = clarabel_min_norm(*args, clarabel_solve(*args)[0])
     np.testing.assert_allclose(f[0].numpy(), f_min, atol=1e-6)
+
+
+def test_rope_penetration_target_is_the_least_squares_projection_for_any_number_of_limits():
+    """Issue 15 ambiguity (2), the rule kept (configs/tasks/Rope.toml, docs/gradients.md): v*_C = J J⁺ v_d, the
+    orthogonal projection of the wanted normal velocities onto what the limit rows can reach, for any number of
+    active limits (the published code switches rule when more limits than points are active). Checked on Rope
+    states with more than 10 active limits: Jᵀ(v_d − v*_C) = 0, and v*_C = v_d where J has full row rank."""
+    task = build_task("Rope")
+    sim = simulator_for(task)
+    with torch.no_grad():
+        x, _, _ = sim.rollout(task.sample(2, 0), task.params, task.dt, 30)
+        flat = x.flatten(0, 1)
+        count = (task.system.detector.gaps(flat) < 0).sum(1)
+        pick = torch.argsort(count, descending=True)[:4]
+        assert count[pick[0]] > task.system.n_points  # more active limits than the rope has points
+        xs = flat[pick]
+        contacts = task.system.detector.detect(xs)
+        v_star = sim.contact_model.target_velocity(task.system.constraints, xs, contacts, task.dt)
+    J = contacts.J
+    v_d = -sim.contact_model.compensation * contacts.gap / task.dt  # the rope's rows are normal-only (dc = 1)
+    residual = (J.mT @ (v_d - v_star)[..., None]).abs().max()
+    assert residual < 1e-9 * (J.abs().max() * v_d.abs().max())
+    full_row_rank = torch.linalg.matrix_rank(J) == contacts.active.sum(1)
+    assert full_row_rank.any()
+    torch.testing.assert_close(v_star[full_row_rank], v_d[full_row_rank], atol=1e-9, rtol=0)
