@@ -187,3 +187,21 @@ def test_rope_penetration_target_is_the_least_squares_projection_for_any_number_
     full_row_rank = torch.linalg.matrix_rank(J) == contacts.active.sum(1)
     assert full_row_rank.any()
     torch.testing.assert_close(v_star[full_row_rank], v_d[full_row_rank], atol=1e-9, rtol=0)
+
+
+def test_events_beyond_the_bound_are_resolved_at_the_end_of_the_step():
+    """Two impacts in one step (walls x = 0 at s = 0.5 and y = 0 at s = 0.8): with max_events = 1 the second is
+    left to the published rule (penetrating, velocity reversed at the end); with the default both are at TOI."""
+    from dataclasses import replace
+
+    task = balls(walls=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)), cor=1.0)
+    state = State(torch.tensor([[[0.105, 0.104]]], dtype=F64), torch.tensor([[[-1.0, -0.5]]], dtype=F64))
+    sim = simulator_for(task, time_of_impact=True)
+    with torch.no_grad():
+        full, _ = sim.step(state, task.params, task.dt)
+        one, hit = replace(sim, max_events=1).step(state, task.params, task.dt)
+    torch.testing.assert_close(full.x[0, 0], torch.tensor([0.105, 0.101], dtype=F64), atol=1e-9, rtol=0)
+    torch.testing.assert_close(full.v[0, 0], torch.tensor([1.0, 0.5], dtype=F64), atol=1e-8, rtol=0)
+    assert bool(hit[0]) and one.x[0, 0, 0].item() == pytest.approx(0.105, abs=1e-9)
+    assert one.x[0, 0, 1].item() == pytest.approx(0.099, abs=1e-9)  # penetrates by 1 mm: resolved at the end
+    assert one.v[0, 0, 1].item() > 0.5  # reversed with e = 1 plus the 1/8 depth/dt compensation target

@@ -56,18 +56,16 @@ def impact_fraction(
     atol = 64 * torch.finfo(x.dtype).eps
     lo, hi = torch.zeros_like(s0), torch.ones_like(s0)
     s = s0.clamp(0.0, 1.0)
-    for _ in range(NEWTON_ITERS):
+    for it in range(NEWTON_ITERS):
         xr, vr = flow(x, v, (s * L)[:, None, None])
         g, rate = detector.rates(xr, vr)
         g, slope = g.gather(1, k[:, None])[:, 0], rate.gather(1, k[:, None])[:, 0] * L
         done = g.abs() <= atol
-        if bool(done.all()):
-            break
         lo, hi = torch.where(g >= 0, s, lo), torch.where(g < 0, s, hi)
         newton = s - g / slope
         ok = (slope < 0) & (newton > lo) & (newton < hi)
         s_next = torch.where(done, s, torch.where(ok, newton, 0.5 * (lo + hi)))
-        if bool((s_next == s).all()):
+        if bool((s_next == s).all()) or it == NEWTON_ITERS - 1:  # converged, or return the last point evaluated
             break
         s = s_next
     return s, xr, vr, slope
