@@ -16,8 +16,10 @@ length h from (x, v) runs as a short sequence of events:
 5. move to the impact (flow over s·L), resolve every contact with gap < tol there (the earliest always) with the
    same ContactModel (both convex problems; the penetration target only sees negative gaps), then go on.
 
-At most ``max_events`` events per step; whatever still penetrates at the end of the step (resting contacts,
-contacts already penetrating at the start, events beyond the bound) is resolved there by the published scheme.
+At most ``max_events`` events per step and one per contact (a contact that comes back within the same step, e.g. a
+rope limit chattering under its spring with e = 0, is not re-timed); whatever still penetrates at the end of the
+step (resting contacts, contacts already penetrating at the start, events beyond the bounds) is resolved there by
+the published scheme.
 Elements are handled with masks and index tensors: no Python loop over samples or contacts.
 """
 
@@ -91,11 +93,12 @@ def toi_step(
     x1, v1 = flow(x, v, dt)
     rem = torch.full((B,), dt, dtype=x.dtype)  # time left in the step (s); carries ds/dθ after an event
     hit = torch.zeros(B, dtype=torch.bool)
+    resolved = torch.zeros(B, detector.count, dtype=torch.bool)  # contacts that had their event in this step
     for _ in range(max_events):
         g0, r0 = detector.rates(x, v)
         with torch.no_grad():
             g1 = detector.gaps(x1)
-            cand = (g1 < 0) & (g0 >= -tol) & ((g0 > tol) | (r0 * rem.detach()[:, None] < -tol))
+            cand = (g1 < 0) & (g0 >= -tol) & ((g0 > tol) | (r0 * rem.detach()[:, None] < -tol)) & ~resolved
             rows = torch.nonzero(cand.any(1)).flatten()
         if rows.numel() == 0:
             break
@@ -124,5 +127,6 @@ def toi_step(
         x1, v1 = x1.index_put((rows,), xe), v1.index_put((rows,), ve)
         rem = rem.index_put((rows,), L_after)
         hit[rows] = True
+        resolved[rows, k] = True
     v1, end_hit = model(constraints, detector, params, x1, v1, dt)
     return x1, v1, hit | end_hit
