@@ -104,7 +104,8 @@ def toi_step(
             break
         with torch.no_grad():
             a, b, c = g0[rows], g1[rows], cand[rows]
-            frac = torch.where(c, a / torch.where(c, a - b, 1.0), torch.inf)
+            ahead = c & (a > 0)  # a touching candidate (gap in [−tol, 0]) starts at s = 0
+            frac = torch.where(ahead, a / torch.where(ahead, a - b, 1.0), torch.where(c, 0.0, torch.inf))
             s0, k = frac.min(dim=1)
         xs, vs, L = x[rows], v[rows], rem[rows]
         s, xc, vc, slope = impact_fraction(flow, detector, xs, vs, L.detach(), k, s0)
