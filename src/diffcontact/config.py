@@ -147,6 +147,13 @@ class Section:
             out.append([_check_real(f"{name}[{i}][{j}]", v, None, None, False) for j, v in enumerate(row)])
         return out
 
+    def flag(self, key: str, default: bool) -> bool:
+        """A boolean (TOML true/false)."""
+        value = self.data.get(key, default)
+        if not isinstance(value, bool):
+            raise ConfigError(f"{self._name(key)} = {value!r} is not true or false")
+        return value
+
     def choice(self, key: str, options: tuple[str, ...], default: str | None = None) -> str:
         value = self.data.get(key, default)
         if value not in options:

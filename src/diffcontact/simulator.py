@@ -1,7 +1,10 @@
 """The Simulator: one physics path (Algorithm 1) for ground truth and learned models alike.
 
 Simulator(system, dynamics, contact_model).step / .rollout take a State and Params; Params may be true
-values or the output of learnable modules.
+values or the output of learnable modules. A frame of length dt runs ``substeps`` substeps of dt/substeps;
+each resolves its contacts at the end of the substep (the published scheme) or, with ``time_of_impact``, at
+their time of impact inside it (:mod:`diffcontact.contact.toi`). Both default to the System's ``stepping``
+(from the task file).
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from functools import partial
 import torch
 
 from diffcontact.contact.impulse import ContactModel
+from diffcontact.contact.toi import MAX_EVENTS, toi_step
 from diffcontact.dynamics.hamiltonian import hamiltonian_field, momentum, velocity
 from diffcontact.dynamics.lagrangian import lagrangian_field
 from diffcontact.errors import ConfigError
@@ -24,18 +28,37 @@ DYNAMICS = ("lagrangian", "hamiltonian")
 
 @dataclass(eq=False)
 class Simulator:
-    """Constrained Lagrangian (x, v) or Hamiltonian (x, p) dynamics + a contact model, for one System."""
+    """Constrained Lagrangian (x, v) or Hamiltonian (x, p) dynamics + a contact model, for one System.
+
+    ``time_of_impact`` and ``substeps`` (None: the System's ``stepping``) choose the time-stepping scheme;
+    ``max_events`` bounds the impacts resolved at their time of impact per substep.
+    """
 
     system: System
     dynamics: str = "lagrangian"
     contact_model: ContactModel = field(default_factory=ContactModel)
+    time_of_impact: bool | None = None
+    substeps: int | None = None
+    max_events: int = MAX_EVENTS
 
     def __post_init__(self):
         if self.dynamics not in DYNAMICS:
             raise ConfigError(f"dynamics = {self.dynamics!r} is not one of {list(DYNAMICS)}")
+        if self.time_of_impact is None:
+            self.time_of_impact = self.system.stepping.time_of_impact
+        if self.substeps is None:
+            self.substeps = self.system.stepping.substeps
+        if isinstance(self.substeps, bool) or not isinstance(self.substeps, int) or self.substeps < 1:
+            raise ConfigError(f"substeps = {self.substeps!r} is not an integer >= 1")
+        if self.max_events < 1:
+            raise ConfigError(f"max_events = {self.max_events!r} is not >= 1")
 
-    def flow(self, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """The smooth part: one RK4 step (no contacts) from (x, v), returning (x, v) at t + dt."""
+    def flow(
+        self, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float | torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The smooth part: one RK4 step (no contacts) from (x, v), returning (x, v) at t + dt.
+
+        dt: a float or a tensor (B, 1, 1) in s (a step length per batch element, for the time of impact)."""
         cons = self.system.constraints
         if self.dynamics == "lagrangian":
             return rk4_step(partial(lagrangian_field, cons, params), x, v, dt)
@@ -43,10 +66,26 @@ class Simulator:
         return x1, velocity(params, p1)
 
     def step(self, state: State, params: Params, dt: float) -> tuple[State, torch.Tensor]:
-        """Algorithm 1, one step: RK4 then the contact model. Returns (state at t + dt, in_contact (B,))."""
-        x1, v1 = self.flow(params, state.x, state.v, dt)
-        v1, hit = self.contact_model(self.system.constraints, self.system.detector, params, x1, v1, dt)
-        return State(x1, v1), hit
+        """One frame of dt (s): ``substeps`` substeps, each RK4 then contacts (Algorithm 1, or at the time of
+        impact). Returns (state at t + dt, in_contact (B,) bool: a contact in any substep)."""
+        h = dt / self.substeps
+        x, v = state.x, state.v
+        hit = torch.zeros(state.batch, dtype=torch.bool)
+        for _ in range(self.substeps):
+            x, v, sub_hit = self._substep(params, x, v, h)
+            hit = hit | sub_hit
+        return State(x, v), hit
+
+    def _substep(
+        self, params: Params, x: torch.Tensor, v: torch.Tensor, h: float
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        sys = self.system
+        if self.time_of_impact:
+            flow = partial(self.flow, params)
+            return toi_step(flow, self.contact_model, sys.constraints, sys.detector, params, x, v, h, self.max_events)
+        x1, v1 = self.flow(params, x, v, h)
+        v1, hit = self.contact_model(sys.constraints, sys.detector, params, x1, v1, h)
+        return x1, v1, hit
 
     def rollout(
         self, state: State, params: Params, dt: float, frames: int
@@ -67,14 +106,21 @@ class Simulator:
 
 
 def simulator_for(
-    task, dynamics: str = "lagrangian", reg: float = 0.0, solver=None, on_failure: str = "raise"
+    task,
+    dynamics: str = "lagrangian",
+    reg: float = 0.0,
+    solver=None,
+    on_failure: str = "raise",
+    time_of_impact: bool | None = None,
+    substeps: int | None = None,
 ) -> Simulator:
-    """The Simulator of a Task: its contact compensation from ``contact.compensation`` (default 1/8)."""
+    """The Simulator of a Task: its contact compensation from ``contact.compensation`` (default 1/8); the
+    time-stepping scheme from ``contact.time_of_impact`` and ``task.substeps`` unless given here."""
     comp = task.config.section("contact").number("compensation", 0.125, lo=0.0, hi=1.0)
     if reg < 0:
         raise ConfigError(f"reg = {reg:g} is not >= 0")
     model = ContactModel(reg=reg, compensation=comp, solver=solver, on_failure=on_failure)
-    return Simulator(task.system, dynamics, model)
+    return Simulator(task.system, dynamics, model, time_of_impact=time_of_impact, substeps=substeps)
 
 
 def simulate_task(

@@ -80,7 +80,12 @@ class Detector:
             return None
         with torch.no_grad():
             gap_all = self.gaps(x)
-            hit = gap_all < 0
+        return self.select(x, gap_all < 0, gap_all)
+
+    def select(self, x: torch.Tensor, hit: torch.Tensor, gap_all: torch.Tensor) -> ContactSet | None:
+        """The contacts marked by ``hit`` (B, K_max) at positions x (B, P, d), with gaps ``gap_all`` (B, K_max)
+        (used by the penetration target), or None if no batch element has a marked contact."""
+        with torch.no_grad():
             index = torch.nonzero(hit.any(dim=1)).flatten()
             if index.numel() == 0:
                 return None
@@ -102,3 +107,18 @@ class Detector:
             frictionless=self.frictionless[order],
             dc=self.dc,
         )
+
+    def rates(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Gaps (B, K_max) and their rates dg/dt = ∇g(x)·v (B, K_max) at (x, v) (m/s), without gradient.
+
+        The rate is the Jacobian-vector product of the gaps, by the double-backward trick.
+        """
+        if not self.kinds:
+            return x.new_zeros(x.shape[0], 0), x.new_zeros(x.shape[0], 0)
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            g = self.gaps(xg)
+            u = torch.zeros_like(g, requires_grad=True)
+            (gx,) = torch.autograd.grad(g, xg, grad_outputs=u, create_graph=True)
+            (rate,) = torch.autograd.grad(gx, u, grad_outputs=v.detach())
+        return g.detach(), rate.detach()

@@ -28,6 +28,16 @@ class Drawing:
     view: tuple[tuple[float, float], ...]
 
 
+@dataclass(frozen=True)
+class Stepping:
+    """How a frame of length dt is integrated: ``substeps`` RK4 steps of dt/substeps, each followed by the
+    contacts; with ``time_of_impact`` contacts are resolved at their time of impact (contact/toi.py), else at
+    the end of each substep (the published scheme). From ``task.substeps`` and ``contact.time_of_impact``."""
+
+    time_of_impact: bool = False
+    substeps: int = 1
+
+
 @dataclass(eq=False)
 class System:
     """Static structure of a rigid-body system in Cartesian coordinates.
@@ -35,7 +45,8 @@ class System:
     d: spatial dimension; n_bodies bodies of ``points_per_body`` points each (1 for point masses, d + 1 for
     extended bodies), P = n_bodies · points_per_body points, D = P d coordinates; ``anchors`` (n_anchors, d)
     are fixed world points addressed by extended point indices P, P + 1, ...; ``constraints`` are the
-    holonomic constraints; ``detector`` holds every contact candidate; ``n_slots`` is the length of μ and e.
+    holonomic constraints; ``detector`` holds every contact candidate; ``n_slots`` is the length of μ and e;
+    ``stepping`` is the task's default time-stepping scheme (the Simulator may override it).
     """
 
     name: str
@@ -47,6 +58,7 @@ class System:
     detector: Detector
     n_slots: int
     drawing: Drawing
+    stepping: Stepping = Stepping()
 
     @property
     def n_points(self) -> int:

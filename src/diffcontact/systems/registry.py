@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from diffcontact.config import TaskConfig, load_task
 from diffcontact.errors import ConfigError
-from diffcontact.systems.base import Task
+from diffcontact.systems.base import Stepping, Task
 from diffcontact.systems.bouncing import build_bouncing
 from diffcontact.systems.gyroscope import build_gyroscope
 from diffcontact.systems.pendulum import build_chain_pendulum
@@ -29,4 +30,12 @@ def build_task(task: str | Path | TaskConfig, overrides: dict[str, dict[str, Any
     builder = BUILDERS.get(cfg.system)
     if builder is None:
         raise ConfigError(f"task.system = {cfg.system!r} is not one of {sorted(BUILDERS)}")
-    return builder(cfg)
+    task = builder(cfg)
+    return replace(task, system=replace(task.system, stepping=stepping(cfg)))
+
+
+def stepping(cfg: TaskConfig) -> Stepping:
+    """The time-stepping scheme of a task file: ``contact.time_of_impact`` (default false, the published
+    scheme) and ``task.substeps`` (default 1)."""
+    toi = cfg.section("contact").flag("time_of_impact", False)
+    return Stepping(time_of_impact=toi, substeps=cfg.section("task").integer("substeps", 1, lo=1))
