@@ -122,7 +122,7 @@ def test_scheme_switch_and_task_keys():
     assert simulator_for(balls(time_of_impact=True), time_of_impact=False).time_of_impact is False
     for name in BENCHMARK_TASKS:  # the benchmark tasks keep the published scheme so their data stay comparable
         assert not build_task(name).system.stepping.time_of_impact, name
-    assert not build_task("Billiards").system.stepping.time_of_impact  # see its task file
+    assert build_task("Billiards").system.stepping.time_of_impact  # the control task: gradients through impacts
     with pytest.raises(ConfigError, match="contact.time_of_impact = 'yes' is not true or false"):
         balls(time_of_impact="yes")
     raw_task = {"name": "t", "system": "bouncing", "dt": 0.01, "frames": 10, "substeps": 0}
