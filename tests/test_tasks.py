@@ -144,7 +144,9 @@ def test_billiards_first_iteration_loss_matches_the_published_value():
     in that bracket (±1e-4).  (The task's default is the time of impact, which gives 0.04566: docs/gradients.md.)"""
     task = build_task("Billiards")
     with torch.no_grad():
-        x, _, hit = simulator_for(task, time_of_impact=False).rollout(task.sample(1, 0), task.params, task.dt, task.frames)
+        x, _, hit = simulator_for(task, time_of_impact=False).rollout(
+            task.sample(1, 0), task.params, task.dt, task.frames
+        )
     goal = torch.tensor(task.config.section("init").numbers("goal", length=2), dtype=torch.float64)
     loss = ((x[0, -1, 10] - goal) ** 2).sum().item()
     assert hit.any()
