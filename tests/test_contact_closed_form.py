@@ -24,7 +24,7 @@ def bouncing(
         "bodies": {"kind": kind, "masses": list(masses), "radii": list(radii)},
         "walls": {"lines": walls},
         "potential": {"gravity": gravity},
-        "contact": {"mu": list(mu), "cor": list(cor), "compensation": comp},
+        "contact": {"mu": list(mu), "cor": list(cor), "compensation": comp, "time_of_impact": False},
     }
     return build_task(task_from_dict(raw))
 

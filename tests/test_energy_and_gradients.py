@@ -63,7 +63,7 @@ def _bp_case():
         "bodies": {"kind": "point", "masses": [0.3, 0.5], "radii": [0.1, 0.12]},
         "walls": {"lines": [[0.0, 1.0, 0.0]]},
         "potential": {"gravity": 9.81},
-        "contact": {"mu": [0.2, 0.3, 0.4], "cor": [0.6, 0.7, 0.8]},
+        "contact": {"mu": [0.2, 0.3, 0.4], "cor": [0.6, 0.7, 0.8], "time_of_impact": False},
     }
     task = build_task(task_from_dict(raw))
     # ball 1 hits ball 0 obliquely (sliding friction) at step 3, nowhere near a touch/separate switch
@@ -96,7 +96,7 @@ def _bd_case():
         "bodies": {"kind": "disk", "masses": [0.2, 0.4], "radii": [0.1, 0.15]},
         "walls": {"lines": [[0.0, 1.0, 0.0]]},
         "potential": {"gravity": 9.81},
-        "contact": {"mu": [0.15, 0.3, 0.4], "cor": [0.5, 0.7, 0.8]},
+        "contact": {"mu": [0.15, 0.3, 0.4], "cor": [0.5, 0.7, 0.8], "time_of_impact": False},
     }
     task = build_task(task_from_dict(raw))
     f64 = torch.float64

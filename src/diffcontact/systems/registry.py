@@ -35,7 +35,7 @@ def build_task(task: str | Path | TaskConfig, overrides: dict[str, dict[str, Any
 
 
 def stepping(cfg: TaskConfig) -> Stepping:
-    """The time-stepping scheme of a task file: ``contact.time_of_impact`` (default false, the published
-    scheme) and ``task.substeps`` (default 1)."""
-    toi = cfg.section("contact").flag("time_of_impact", False)
+    """The time-stepping scheme of a task file: ``contact.time_of_impact`` (default true: correct gradients through
+    impacts; the benchmark task files say false, the published scheme) and ``task.substeps`` (default 1)."""
+    toi = cfg.section("contact").flag("time_of_impact", True)
     return Stepping(time_of_impact=toi, substeps=cfg.section("task").integer("substeps", 1, lo=1))
