@@ -13,14 +13,16 @@ from diffcontact.errors import ConfigError
 from diffcontact.train.module import ContactLightningModule
 from diffcontact.train.run import loss_curves, train_run
 
+# A first float32 forward pass, in every process that trains here: the potential's orthogonal initialisation (a float32
+# QR) can differ in its last bits before and after one in a process, which would make two runs differ from the start.
+WARM_UP = 'ContactLightningModule("BP1").loss((torch.zeros(1, 5, 1, 2), torch.zeros(1, 5, 1, 2)))'
+
 
 @pytest.fixture(scope="module")
 def data_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
     generate_dataset("BP1", root, n_train=16, n_val=4, n_test=4, progress=False)
-    # (a first float32 forward pass: the potential's orthogonal initialisation (a float32 QR) can differ in its last
-    # bits before and after one in a process, which would make the runs below differ from their very start)
-    ContactLightningModule("BP1").loss((torch.zeros(1, 5, 1, 2), torch.zeros(1, 5, 1, 2)))
+    exec(WARM_UP)
     return root
 
 
@@ -41,31 +43,74 @@ def _state(run):
     return torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
 
 
-def test_a_resumed_run_ends_bit_identical_to_an_uninterrupted_one(data_root, tmp_path, monkeypatch):
-    """4 epochs, cosine schedule, 2 batches an epoch in shuffled order: interrupted after epoch 2, then ``resume``
-    alone (the settings come from config.json); the same parameters, optimiser state and learned values to the bit,
-    and the loss curves of both sessions."""
-    settings = dict(epochs=4, data_root=data_root, batch_size=8, lr=3e-3)
-    whole = train_run("BP1", out=tmp_path / "whole", progress=False, **settings)
-    _killed_at_epoch(monkeypatch, 2, out=tmp_path / "cut", **settings)
-    assert _state(tmp_path / "cut")["epoch"] == 1
-    resumed = train_run("BP1", out=tmp_path / "cut", resume=True, progress=False)
-    a, b = _state(tmp_path / "whole"), _state(tmp_path / "cut")
+@pytest.fixture(scope="module")
+def whole(data_root, tmp_path_factory):
+    """An uninterrupted run of 4 epochs (cosine schedule, 2 batches an epoch in shuffled order): its directory."""
+    run = tmp_path_factory.mktemp("whole") / "run"
+    train_run("BP1", out=run, progress=False, **SETTINGS, data_root=data_root)
+    return run
+
+
+SETTINGS = dict(epochs=4, batch_size=8, lr=3e-3)
+
+
+def _same_end(a, b) -> None:
+    """Two last.ckpt of equal parameters, optimiser states and schedules, to the bit."""
+    a, b = _state(a), _state(b)
     assert a["state_dict"].keys() == b["state_dict"].keys()
     for key in a["state_dict"]:
         assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
     for sa, sb in zip(a["optimizer_states"][0]["state"].values(), b["optimizer_states"][0]["state"].values()):
         assert all(torch.equal(sa[k], sb[k]) for k in sa)
-    assert a["lr_schedulers"] == b["lr_schedulers"]
+    assert a["lr_schedulers"] == b["lr_schedulers"] and a["epoch"] == b["epoch"]
+
+
+def test_a_resumed_run_ends_bit_identical_to_an_uninterrupted_one(data_root, whole, tmp_path, monkeypatch):
+    """Interrupted after epoch 2, then ``resume`` alone (the settings come from config.json): the same parameters,
+    optimiser state and learned values to the bit, and the loss curves of both sessions."""
+    _killed_at_epoch(monkeypatch, 2, out=tmp_path / "cut", data_root=data_root, **SETTINGS)
+    assert _state(tmp_path / "cut")["epoch"] == 1
+    resumed = train_run("BP1", out=tmp_path / "cut", resume=True, progress=False)
+    _same_end(whole, tmp_path / "cut")
+    learned = json.loads((whole / "learned.json").read_text())
     for key in ("mu", "e", "mass_ratio"):
-        assert resumed[key]["learned"] == whole[key]["learned"]
-    assert resumed["epochs_trained"] == whole["epochs_trained"] == 4
+        assert resumed[key]["learned"] == learned[key]["learned"]
+    assert resumed["epochs_trained"] == learned["epochs_trained"] == 4
     curves = loss_curves(tmp_path / "cut" / "logs" / "csv")  # (two sessions, two logs)
     assert len(list((tmp_path / "cut" / "logs" / "csv").rglob("metrics.csv"))) == 2
-    assert curves == loss_curves(tmp_path / "whole" / "logs" / "csv")
+    assert curves == loss_curves(whole / "logs" / "csv")
     assert list(curves["train/loss"]) == [0, 1, 2, 3]
     config = json.loads((tmp_path / "cut" / "config.json").read_text())["args"]
-    assert config == json.loads((tmp_path / "whole" / "config.json").read_text())["args"]
+    assert config == json.loads((whole / "config.json").read_text())["args"]
+
+
+def test_a_run_killed_by_sigkill_resumes_to_the_same_end(data_root, whole, tmp_path):
+    """The run in another process, SIGKILLed as soon as its first checkpoint is there (in epoch 1, or while a
+    checkpoint is written: Lightning writes it to a temporary file first), then resumed here."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    run = tmp_path / "killed"
+    code = (
+        "import torch\nfrom diffcontact.train.module import ContactLightningModule\n"
+        f"from diffcontact.train.run import train_run\n{WARM_UP}\n"
+        f"train_run('BP1', out={str(run)!r}, data_root={str(data_root)!r}, progress=False, **{SETTINGS!r})\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], env=os.environ.copy(), stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not (run / "checkpoints" / "last.ckpt").is_file() and proc.poll() is None:
+            assert time.monotonic() < deadline, "no checkpoint written in 120 s"
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL  # (killed, not finished)
+    train_run("BP1", out=run, resume=True, progress=False)
+    _same_end(whole, run)
 
 
 @pytest.fixture(scope="module")
