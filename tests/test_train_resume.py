@@ -132,6 +132,7 @@ def finished(data_root, tmp_path_factory):
         (dict(schedule="cosine"), r"schedule = 'cosine' differs from the run's 'constant'"),
         (dict(preset="published"), r"preset = 'published' differs from the run's 'default'"),
         (dict(epochs=1), r"epochs = 1 is fewer than the 2 epochs the run has trained"),
+        (dict(data_root="elsewhere"), r"data_root = 'elsewhere' differs from the run's '/"),
     ],
 )
 def test_resume_refuses_other_settings_before_writing_anything(finished, given, message):
@@ -146,7 +147,13 @@ def test_resume_keeps_the_runs_settings_and_a_moved_run_its_checkpoints(finished
     preset's), one last.ckpt and one best checkpoint, both in the new folder."""
     run = tmp_path / "moved"
     shutil.copytree(finished, run)
-    summary = train_run("BP1", out=run, resume=True, epochs=3, lr=3e-3, batch_size=8, progress=False)
+    given = dict(
+        epochs=3,
+        lr=3e-3,
+        batch_size=8,
+        data_root=json.loads((run / "config.json").read_text())["args"]["data_root"] + "/.",
+    )
+    summary = train_run("BP1", out=run, resume=True, progress=False, **given)
     assert summary["epochs_trained"] == 3
     state = _state(run)
     assert [g["lr"] for g in state["optimizer_states"][0]["param_groups"]] == pytest.approx([3e-3, 5e-4, 5e-4])

@@ -207,8 +207,10 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
         if value != recorded.get(key):
             raise ConfigError(f"--resume: {last} is of {key} {value!r}, config.json records {recorded.get(key)!r}")
     for key in RUN_SETTINGS:
-        value = str(given[key]) if key == "data_root" and given[key] is not None else given[key]
-        if value is not None and value != recorded.get(key):
+        value, same = given[key], given[key] == recorded.get(key)
+        if key == "data_root" and value is not None:  # (the same folder, however written)
+            value, same = str(value), Path(value).resolve() == Path(recorded.get(key, "")).resolve()
+        if value is not None and not same:
             raise ConfigError(
                 f"--resume: {key} = {value!r} differs from the run's {recorded.get(key)!r} ({run / 'config.json'}); "
                 "leave it out to continue the run as it was, or train into another --out"
