@@ -162,7 +162,7 @@ def test_resume_keeps_the_runs_settings_and_a_moved_run_its_checkpoints(finished
     assert names[-1] == "last.ckpt" and len(names) == 2 and names[0].startswith("best-"), names
     best = summary["best_checkpoint"]
     assert best == str(run / "checkpoints" / names[0]) and state["epoch"] == 2
-    callback = next(v for k, v in state["callbacks"].items() if k.startswith("_RunCheckpoint"))
+    callback = next(v for k, v in state["callbacks"].items() if k.startswith("ModelCheckpoint{"))  # (as before)
     assert callback["best_model_score"] is not None and str(run) in callback["best_model_path"]
     again = train_run("BP1", out=run, resume=True, progress=False)  # (nothing left to train: the best is found)
     assert again["best_checkpoint"] == best and again["mu"] == summary["mu"]

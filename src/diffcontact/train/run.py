@@ -131,6 +131,10 @@ class _RunCheckpoint(pl.callbacks.ModelCheckpoint):
     """ModelCheckpoint whose record of the best and last checkpoints follows its run directory when the run was
     moved or copied (Lightning's would forget the best score and write last-v1.ckpt)."""
 
+    @property
+    def state_key(self) -> str:  # (Lightning's own name: the checkpoints of runs made before keep their state)
+        return "ModelCheckpoint" + super().state_key.removeprefix(type(self).__qualname__)
+
     def load_state_dict(self, state_dict: dict) -> None:
         old = state_dict.get("dirpath")
         if old and old != self.dirpath:
@@ -169,17 +173,6 @@ class _ShuffleState(pl.Callback):
             # generator: draw it again, as the uninterrupted run did after saving, so that the order is the same)
             gen.set_state(self.loaded)
             torch.empty((), dtype=torch.int64).random_(generator=gen)
-
-
-def _own_checkpoint(run: Path, recorded: str | Path) -> Path:
-    """The checkpoint recorded as ``recorded``, or the one of that name in ``run``/checkpoints when the run
-    directory was moved; ConfigError if neither is a file."""
-    path = Path(recorded)
-    if not path.is_file():
-        path = run / "checkpoints" / path.name
-    if not path.is_file():
-        raise ConfigError(f"{run}: the best checkpoint {str(recorded)!r} is missing")
-    return path
 
 
 # The settings a run records in config.json ("args") that a resumed run must keep (epochs may grow).
@@ -357,12 +350,12 @@ def train_run(
         enable_model_summary=False,
     )
     trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume else None)
-    best = _own_checkpoint(run, checkpoints.best_model_path) if checkpoints.best_model_path else None
+    best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
     # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
     train = data.splits["train"]
     summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
-    summary["best_checkpoint"] = str(best) if best else ""
+    summary["best_checkpoint"] = best
     summary["epochs_trained"] = int(trainer.current_epoch)
     summary["skipped_steps"] = module.skipped_steps
     summary["solver_failures"] = module.solver_failures
@@ -378,6 +371,7 @@ def summarize_run(run: str | Path) -> dict:
     """Recompute the learned-against-true part of ``run``/learned.json from its best checkpoint and training data
     (after an upgrade of the summary); the run's counters and times are kept.  Returns the new summary."""
     from diffcontact.data.store import load_split
+    from diffcontact.eval.loading import best_checkpoint
 
     run = Path(run)
     try:
@@ -385,7 +379,7 @@ def summarize_run(run: str | Path) -> dict:
         args = json.loads((run / "config.json").read_text())["args"]
     except (OSError, ValueError, KeyError) as err:
         raise ConfigError(f"{run} is not a finished training run (learned.json, config.json): {err}") from err
-    best = _own_checkpoint(run, old.get("best_checkpoint") or "")
+    best = best_checkpoint(run)  # (in the run's own folder if it was moved)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
     train = load_split(Path(args["data_root"]) / args["task"], "train")
     fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
