@@ -142,6 +142,13 @@ def test_resume_refuses_other_settings_before_writing_anything(finished, given, 
     assert before == {p: p.read_bytes() for p in before}
 
 
+def test_a_cosine_schedule_is_not_extended(whole):
+    before = (whole / "config.json").read_bytes()
+    with pytest.raises(ConfigError, match=r"epochs = 5 differs from the run's 4, over which its cosine learning rate"):
+        train_run("BP1", out=whole, resume=True, epochs=5, progress=False)
+    assert (whole / "config.json").read_bytes() == before
+
+
 def test_resume_keeps_the_runs_settings_and_a_moved_run_its_checkpoints(finished, tmp_path):
     """A copied (moved) finished run resumed to 3 epochs with only the equal values given: the recorded lr (not the
     preset's), one last.ckpt and one best checkpoint, both in the new folder."""

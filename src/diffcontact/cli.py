@@ -131,7 +131,7 @@ def train(
         False,
         "--resume",
         help="Continue the run in --out from its last checkpoint, with its settings (config.json); options given must "
-        "equal them (--epochs may grow).",
+        "equal them (--epochs may grow with a constant schedule).",
     ),
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:

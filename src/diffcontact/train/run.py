@@ -211,6 +211,11 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     epochs = recorded["epochs"] if epochs is None else epochs
     if epochs < done:
         raise ConfigError(f"--resume: epochs = {epochs} is fewer than the {done} epochs the run has trained")
+    if epochs != recorded["epochs"] and recorded["schedule"] != "constant":
+        raise ConfigError(
+            f"--resume: epochs = {epochs} differs from the run's {recorded['epochs']}, over which its "
+            f"{recorded['schedule']} learning rate schedule is planned (only a constant one can be extended)"
+        )
     return {**recorded, "epochs": epochs}
 
 
@@ -246,8 +251,8 @@ def train_run(
     The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last.ckpt,
     every epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  A directory that
     already holds checkpoints is refused unless ``resume``, which continues from checkpoints/last.ckpt with the
-    run's recorded settings: a setting given here must equal the recorded one (``epochs`` may grow); the result
-    is the same as a run that was not interrupted.
+    run's recorded settings: a setting given here must equal the recorded one (``epochs`` may grow with a constant
+    schedule); the result is the same as a run that was not interrupted.
     Returns the learned summary.
     """
     run = Path(out) if out else Path("runs") / task / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
@@ -348,6 +353,7 @@ def train_run(
         deterministic=True,
         log_every_n_steps=1,
         enable_model_summary=False,
+        num_sanity_val_steps=0 if resume else 2,  # (as the uninterrupted run: its counters include it once)
     )
     trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume else None)
     best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
