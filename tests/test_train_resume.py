@@ -180,7 +180,13 @@ def test_a_fresh_run_beside_checkpoints_and_a_damaged_checkpoint_are_clear_error
         train_run("BP1", epochs=1, out=finished, data_root=finished.parent, progress=False)
     run = tmp_path / "damaged"
     shutil.copytree(finished, run)
+    config = json.loads((run / "config.json").read_text())
+    del config["args"]["mu_coef_lr"]
+    (run / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ConfigError, match=r"config.json lacks \['mu_coef_lr'\] \(a run of an older version\)"):
+        train_run("BP1", out=run, resume=True, progress=False)
     last = run / "checkpoints" / "last.ckpt"
+    (run / "config.json").write_bytes((finished / "config.json").read_bytes())
     last.write_bytes(last.read_bytes()[:1000])  # (as a kill while it is written would leave it)
     with pytest.raises(ConfigError, match="is not a readable training run"):
         train_run("BP1", out=run, resume=True, progress=False)

@@ -196,6 +196,9 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
         trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
     except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
         raise ConfigError(f"--resume: {run} is not a readable training run (config.json, {last.name}): {err}") from err
+    missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
+    if missing:
+        raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
     for key, value in trained.items():
         if value != recorded.get(key):
             raise ConfigError(f"--resume: {last} is of {key} {value!r}, config.json records {recorded.get(key)!r}")
