@@ -112,7 +112,10 @@ def test_the_reproduce_worker_continues_an_interrupted_training(trained, tmp_pat
 
     run = tmp_path / "run"
     shutil.copytree(trained / "run", run, ignore=shutil.ignore_patterns("eval"))
-    (run / "learned.json").unlink()  # (as if killed after its first epoch's checkpoint)
+    (run / "learned.json").unlink()  # (as if killed after its first epoch's checkpoint of a 2-epoch run)
+    config = json.loads((run / "config.json").read_text())
+    config["args"]["epochs"] = 2  # (a cosine run is resumed to its own epochs only)
+    (run / "config.json").write_text(json.dumps(config))
     args = ["BP1", "CM-CD-CLNN", "0", str(run), str(trained / "data"), "--train", "--epochs", "2"]
     assert main([*args, "--batch-size", "8", "--frames", "6"]) == 0
     assert json.loads((run / "learned.json").read_text())["epochs_trained"] == 2

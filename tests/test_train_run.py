@@ -51,7 +51,7 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
 
 def test_resume_continues_to_more_epochs(data_root, tmp_path):
     run = tmp_path / "run"
-    train_run("BP1", epochs=1, out=run, data_root=data_root, batch_size=8, progress=False)
+    train_run("BP1", epochs=1, out=run, data_root=data_root, batch_size=8, schedule="constant", progress=False)
     summary = train_run("BP1", epochs=2, out=run, data_root=data_root, batch_size=8, resume=True, progress=False)
     assert summary["epochs_trained"] == 2
 

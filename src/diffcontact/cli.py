@@ -99,17 +99,19 @@ def generate(
 @app.command("train")
 def train(
     task: str = typer.Argument(..., help="Task name (its dataset must exist: diffcontact generate TASK)."),
-    model: str = typer.Option("CM-CD-CLNN", "--model", help="CM-CD-CLNN, CM-CD-CHNN, CMr-CD-CLNN or CMr-CD-CHNN."),
+    model: str = typer.Option(None, "--model", help="CM-CD-CLNN (default), CM-CD-CHNN, CMr-CD-CLNN or CMr-CD-CHNN."),
     preset: str = typer.Option(
-        "default",
+        None,
         "--preset",
         help="Training settings: default (200 epochs, batch 50, lr 1e-2 cosine-annealed, projected μ and e) or "
         "published (1000 epochs, batch 200, lr 1e-3 constant, ReLU μ, hardsigmoid e).",
     ),
     epochs: int = typer.Option(None, "--epochs", help="Epochs (default: the preset's)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the initial parameters and the batch order."),
+    seed: int = typer.Option(None, "--seed", help="Seed of the initial parameters and the batch order (default 0)."),
     out: str = typer.Option("", "--out", help="Run directory (default runs/TASK/MODEL/seedS)."),
-    data: str = typer.Option("data", "--data", help="Dataset root (as given to diffcontact generate --out)."),
+    data: str = typer.Option(
+        None, "--data", help="Dataset root (as given to diffcontact generate --out; default data)."
+    ),
     batch_size: int = typer.Option(None, "--batch-size", help="Chunks per batch (default: the preset's)."),
     lr: float = typer.Option(None, "--lr", help="AdamW learning rate (default: the preset's)."),
     schedule: str = typer.Option(
@@ -125,7 +127,12 @@ def train(
         None, "--reg", help="CMr models: the regularisation A + reg·I of the effective mass (default 0.01)."
     ),
     smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of the preset's."),
-    resume: bool = typer.Option(False, "--resume", help="Continue from the run's last checkpoint."),
+    resume: bool = typer.Option(
+        False,
+        "--resume",
+        help="Continue the run in --out from its last checkpoint, with its settings (config.json); options given must "
+        "equal them (--epochs may grow with a constant schedule).",
+    ),
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Train a model on a task's chunks; writes checkpoints, logs and learned.json into the run directory."""

@@ -8,6 +8,7 @@ preset, resuming from the run's last checkpoint if there is one) unless already 
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 
@@ -41,6 +42,8 @@ def main(argv: list[str] | None = None) -> int:
                 if not resume:
                     raise
                 print(f"resuming failed ({type(err).__name__}: {err}); training from the start", flush=True)
+                for part in ("checkpoints", "logs"):  # (a fresh run is refused beside another run's checkpoints)
+                    shutil.rmtree(args.run / part, ignore_errors=True)
                 train_run(args.task, args.model, progress=False, **settings)
         m = evaluate_run(args.run, task=args.task, data_root=args.data, frames=args.frames)
     except (DiffContactError, FloatingPointError) as err:

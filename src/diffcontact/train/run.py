@@ -26,24 +26,31 @@ def _write_json(path: Path, obj) -> None:
     os.replace(tmp, path)
 
 
-def plot_losses(csv_dir: Path, out: Path) -> Path | None:
-    """Train and validation loss per epoch from the CSV log (the newest version) into a PNG; None if no log."""
+def loss_curves(csv_dir: Path) -> dict[str, dict[int, float]]:
+    """Train and validation loss by epoch ({"train/loss": {epoch: loss}, "val/loss": ...}) from the CSV logs under
+    ``csv_dir``: every session of a resumed run, the newer log winning an epoch logged twice."""
     import csv
 
+    curves: dict[str, dict[int, float]] = {"train/loss": {}, "val/loss": {}}
+    for log in sorted(csv_dir.rglob("metrics.csv"), key=lambda p: p.stat().st_mtime):
+        with log.open() as fh:
+            for row in csv.DictReader(fh):
+                for key, curve in curves.items():
+                    if row.get(key):
+                        curve[int(row["epoch"])] = float(row[key])
+    return {key: dict(sorted(curve.items())) for key, curve in curves.items()}
+
+
+def plot_losses(csv_dir: Path, out: Path) -> Path | None:
+    """The loss curves (``loss_curves``) into a PNG; None if there is no log."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    logs = sorted(csv_dir.rglob("metrics.csv"), key=lambda p: p.stat().st_mtime)
-    if not logs:
+    curves = loss_curves(csv_dir)
+    if not any(curves.values()):
         return None
-    curves: dict[str, dict[int, float]] = {"train/loss": {}, "val/loss": {}}
-    with logs[-1].open() as fh:
-        for row in csv.DictReader(fh):
-            for key, curve in curves.items():
-                if row.get(key):
-                    curve[int(row["epoch"])] = float(row[key])
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for key, curve in curves.items():
         if curve:
@@ -120,84 +127,191 @@ def resolve_preset(preset: str, task_settings: dict | None = None, **given) -> d
     return {k: v if given.get(k) is None else given[k] for k, v in base.items()}
 
 
+class _RunCheckpoint(pl.callbacks.ModelCheckpoint):
+    """ModelCheckpoint whose record of the best and last checkpoints follows its run directory when the run was
+    moved or copied (Lightning's would forget the best score and write last-v1.ckpt)."""
+
+    @property
+    def state_key(self) -> str:  # (Lightning's own name: the checkpoints of runs made before keep their state)
+        return "ModelCheckpoint" + super().state_key.removeprefix(type(self).__qualname__)
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        old = state_dict.get("dirpath")
+        if old and old != self.dirpath:
+
+            def here(path):
+                return str(Path(self.dirpath) / Path(path).name) if path and Path(path).parent == Path(old) else path
+
+            state_dict = dict(state_dict, dirpath=self.dirpath)
+            for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
+                state_dict[key] = here(state_dict.get(key))
+            state_dict["best_k_models"] = {here(k): v for k, v in state_dict.get("best_k_models", {}).items()}
+        super().load_state_dict(state_dict)
+
+
+class _ShuffleState(pl.Callback):
+    """Keeps the state of the training data loader's random generator (the batch order) in the checkpoints, so that
+    a resumed run draws the batches an uninterrupted run would (the loader's generator restarts from the seed)."""
+
+    def __init__(self) -> None:
+        self.loaded: torch.Tensor | None = None
+
+    @staticmethod
+    def _generator(trainer: pl.Trainer) -> torch.Generator | None:
+        return getattr(trainer.train_dataloader, "generator", None)
+
+    def on_save_checkpoint(self, trainer: pl.Trainer, pl_module, checkpoint: dict) -> None:
+        if (gen := self._generator(trainer)) is not None:
+            checkpoint["shuffle_rng"] = gen.get_state()
+
+    def on_load_checkpoint(self, trainer: pl.Trainer, pl_module, checkpoint: dict) -> None:
+        self.loaded = checkpoint.get("shuffle_rng")  # (None in checkpoints written before it was kept)
+
+    def on_train_start(self, trainer: pl.Trainer, pl_module) -> None:
+        if self.loaded is not None and (gen := self._generator(trainer)) is not None:
+            # (the first epoch's loader iterator was made before this hook and drew its base seed from the fresh
+            # generator: draw it again, as the uninterrupted run did after saving, so that the order is the same)
+            gen.set_state(self.loaded)
+            torch.empty((), dtype=torch.int64).random_(generator=gen)
+
+
+# The settings a run records in config.json ("args") that a resumed run must keep (epochs may grow).
+RUN_SETTINGS = (
+    "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "reg",
+    "weight_decay", "mu_transform", "e_transform", "dtype", "data_root",
+)  # fmt: skip
+
+
+def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
+    """The recorded settings (config.json "args") of the run in ``run``, with ``epochs`` where given: raises
+    ConfigError if the run has no checkpoint or config, if a ``given`` setting (not None) differs from the
+    recorded one, or if ``epochs`` is fewer than the epochs already trained."""
+    last = run / "checkpoints" / "last.ckpt"
+    if not last.is_file():
+        raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
+    try:
+        recorded = json.loads((run / "config.json").read_text())["args"]
+        checkpoint = torch.load(last, map_location="cpu", weights_only=False)
+        done = int(checkpoint["epoch"]) + 1
+        trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
+    except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
+        raise ConfigError(f"--resume: {run} is not a readable training run (config.json, {last.name}): {err}") from err
+    missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
+    if missing:
+        raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
+    for key, value in trained.items():
+        if value != recorded.get(key):
+            raise ConfigError(f"--resume: {last} is of {key} {value!r}, config.json records {recorded.get(key)!r}")
+    for key in RUN_SETTINGS:
+        value, same = given[key], given[key] == recorded.get(key)
+        if key == "data_root" and value is not None:  # (the same folder, however written)
+            value, same = str(value), Path(value).resolve() == Path(recorded.get(key, "")).resolve()
+        if value is not None and not same:
+            raise ConfigError(
+                f"--resume: {key} = {value!r} differs from the run's {recorded.get(key)!r} ({run / 'config.json'}); "
+                "leave it out to continue the run as it was, or train into another --out"
+            )
+    epochs = recorded["epochs"] if epochs is None else epochs
+    if epochs < done:
+        raise ConfigError(f"--resume: epochs = {epochs} is fewer than the {done} epochs the run has trained")
+    if epochs != recorded["epochs"] and recorded["schedule"] != "constant":
+        raise ConfigError(
+            f"--resume: epochs = {epochs} differs from the run's {recorded['epochs']}, over which its "
+            f"{recorded['schedule']} learning rate schedule is planned (only a constant one can be extended)"
+        )
+    return {**recorded, "epochs": epochs}
+
+
 def train_run(
     task: str,
-    model: str = "CM-CD-CLNN",
+    model: str | None = None,
     *,
-    preset: str = "default",
+    preset: str | None = None,
     epochs: int | None = None,
-    seed: int = 0,
+    seed: int | None = None,
     out: str | Path | None = None,
-    data_root: str | Path = "data",
+    data_root: str | Path | None = None,
     batch_size: int | None = None,
     lr: float | None = None,
     schedule: str | None = None,
-    weight_decay: float = 1e-4,
+    weight_decay: float | None = None,
     mu_transform: str | None = None,
     e_transform: str | None = None,
     coef_lr: float | None = None,
     mu_coef_lr: float | None = None,
     reg: float | None = None,
-    dtype: str = "float32",
+    dtype: str | None = None,
     resume: bool = False,
     progress: bool = True,
 ) -> dict:
-    """Train ``model`` on the generated dataset of ``task`` into ``out`` (default runs/<task>/<model>/seed<seed>).
+    """Train ``model`` (default CM-CD-CLNN) on the generated dataset of ``task`` (in ``data_root``, default
+    data/) into ``out`` (default runs/<task>/<model>/seed<seed>, seed 0 by default).
 
-    ``preset`` names the training settings (``PRESETS``), which the task file's ``[training]`` table adjusts for
-    the default preset; ``epochs``, ``lr``, ``schedule``, ``batch_size``, the transforms and the rates override
-    them where given.
+    ``preset`` names the training settings (``PRESETS``, default "default"), which the task file's ``[training]``
+    table adjusts for the default preset; ``epochs``, ``lr``, ``schedule``, ``batch_size``, the transforms and the
+    rates override them where given (weight decay 1e-4 and float32 by default).
 
-    The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last, every
-    epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  ``resume`` continues
-    from checkpoints/last.ckpt.
+    The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last.ckpt,
+    every epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  A directory that
+    already holds checkpoints is refused unless ``resume``, which continues from checkpoints/last.ckpt with the
+    run's recorded settings: a setting given here must equal the recorded one (``epochs`` may grow with a constant
+    schedule); the result is the same as a run that was not interrupted.
     Returns the learned summary.
     """
-    if model not in MODEL_NAMES:
-        raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES)}")
-    own = task_training(task)
-    settings = resolve_preset(
-        preset,
-        own,
-        epochs=epochs,
-        lr=lr,
-        schedule=schedule,
-        batch_size=batch_size,
-        mu_transform=mu_transform,
-        e_transform=e_transform,
-        coef_lr=coef_lr,
-        mu_coef_lr=mu_coef_lr,
-    )
-    coef_lr, mu_coef_lr = settings["coef_lr"], settings["mu_coef_lr"]
-    epochs, lr, schedule, batch_size = (settings[k] for k in ("epochs", "lr", "schedule", "batch_size"))
-    mu_transform, e_transform = settings["mu_transform"], settings["e_transform"]
-    if epochs < 1:
-        raise ConfigError(f"epochs = {epochs} is not >= 1")
-    run = Path(out) if out else Path("runs") / task / model / f"seed{seed}"
+    run = Path(out) if out else Path("runs") / task / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
     ckpt_dir = run / "checkpoints"
     last = ckpt_dir / "last.ckpt"
-    if resume and not last.is_file():
-        raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
+    if resume:
+        given = dict(
+            task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
+            coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, reg=reg, weight_decay=weight_decay, mu_transform=mu_transform,
+            e_transform=e_transform, dtype=dtype, data_root=data_root,
+        )  # fmt: skip
+        args = _resume_settings(run, given, epochs)
+    else:
+        if ckpt_dir.is_dir() and any(ckpt_dir.glob("*.ckpt")):
+            raise ConfigError(
+                f"{ckpt_dir} already holds the checkpoints of a run: continue it with --resume, or train into another "
+                "--out (or delete that run)"
+            )
+        model, preset = model or "CM-CD-CLNN", preset or "default"
+        if model not in MODEL_NAMES:
+            raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES)}")
+        own = task_training(task)
+        settings = resolve_preset(
+            preset,
+            own,
+            epochs=epochs,
+            lr=lr,
+            schedule=schedule,
+            batch_size=batch_size,
+            mu_transform=mu_transform,
+            e_transform=e_transform,
+            coef_lr=coef_lr,
+            mu_coef_lr=mu_coef_lr,
+        )
+        if settings["epochs"] < 1:
+            raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
+        args = dict(
+            task=task,
+            model=model,
+            preset=preset,
+            epochs=settings["epochs"],
+            seed=0 if seed is None else seed,
+            batch_size=settings["batch_size"],
+            lr=settings["lr"],
+            schedule=settings["schedule"],
+            coef_lr=settings["coef_lr"],
+            mu_coef_lr=settings["mu_coef_lr"],
+            reg=MODEL_NAMES[model][1] if reg is None else reg,
+            weight_decay=1e-4 if weight_decay is None else weight_decay,
+            mu_transform=settings["mu_transform"],
+            e_transform=settings["e_transform"],
+            dtype=dtype or "float32",
+            data_root=str("data" if data_root is None else data_root),
+            task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
+        )
     run.mkdir(parents=True, exist_ok=True)
-    args = dict(
-        task=task,
-        model=model,
-        preset=preset,
-        epochs=epochs,
-        seed=seed,
-        batch_size=batch_size,
-        lr=lr,
-        schedule=schedule,
-        coef_lr=coef_lr,
-        mu_coef_lr=mu_coef_lr,
-        reg=MODEL_NAMES[model][1] if reg is None else reg,
-        weight_decay=weight_decay,
-        mu_transform=mu_transform,
-        e_transform=e_transform,
-        dtype=dtype,
-        data_root=str(data_root),
-        task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
-    )
     versions = dict(
         diffcontact=diffcontact.__version__,
         torch=torch.__version__,
@@ -205,26 +319,26 @@ def train_run(
         python=platform.python_version(),
     )
     _write_json(run / "config.json", {"args": args, "versions": versions})
+    task, model, seed, dtype = args["task"], args["model"], args["seed"], args["dtype"]
 
     started = time.perf_counter()
     pl.seed_everything(seed, workers=True)
-    data = ContactDataModule(task, root=data_root, batch_size=batch_size, dtype=getattr(torch, dtype), seed=seed)
+    data = ContactDataModule(
+        task, root=args["data_root"], batch_size=args["batch_size"], dtype=getattr(torch, dtype), seed=seed
+    )
     module = ContactLightningModule(
         task,
         model,
-        lr=lr,
-        weight_decay=weight_decay,
-        mu_transform=mu_transform,
-        e_transform=e_transform,
         seed=seed,
         dtype=dtype,
-        schedule=schedule,
-        coef_lr=coef_lr,
-        mu_coef_lr=mu_coef_lr,
-        reg=reg,
+        reg=args["reg"] if MODEL_NAMES[model][1] else None,  # (the CM models have none)
+        **{
+            k: args[k]
+            for k in ("lr", "weight_decay", "mu_transform", "e_transform", "schedule", "coef_lr", "mu_coef_lr")
+        },
     )
     loggers = [pl.loggers.CSVLogger(run / "logs", name="csv"), pl.loggers.TensorBoardLogger(run / "logs", name="tb")]
-    checkpoints = pl.callbacks.ModelCheckpoint(
+    checkpoints = _RunCheckpoint(
         dirpath=ckpt_dir,
         filename="best-{epoch}",
         monitor="val/loss",
@@ -232,18 +346,20 @@ def train_run(
         save_top_k=1,
         save_last=True,
         every_n_epochs=1,
+        enable_version_counter=False,  # (one last.ckpt, always the newest)
     )
     trainer = pl.Trainer(
-        max_epochs=epochs,
+        max_epochs=args["epochs"],
         logger=loggers,
-        callbacks=[checkpoints],
+        callbacks=[checkpoints, _ShuffleState()],
         enable_progress_bar=progress,
         deterministic=True,
         log_every_n_steps=1,
         enable_model_summary=False,
+        num_sanity_val_steps=0 if resume else 2,  # (as the uninterrupted run: its counters include it once)
     )
     trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume else None)
-    best = checkpoints.best_model_path
+    best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
     # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
     train = data.splits["train"]
@@ -264,6 +380,7 @@ def summarize_run(run: str | Path) -> dict:
     """Recompute the learned-against-true part of ``run``/learned.json from its best checkpoint and training data
     (after an upgrade of the summary); the run's counters and times are kept.  Returns the new summary."""
     from diffcontact.data.store import load_split
+    from diffcontact.eval.loading import best_checkpoint
 
     run = Path(run)
     try:
@@ -271,11 +388,7 @@ def summarize_run(run: str | Path) -> dict:
         args = json.loads((run / "config.json").read_text())["args"]
     except (OSError, ValueError, KeyError) as err:
         raise ConfigError(f"{run} is not a finished training run (learned.json, config.json): {err}") from err
-    best = Path(old.get("best_checkpoint") or "")
-    if not best.is_file():  # (a run directory that was moved: its own checkpoints folder)
-        best = run / "checkpoints" / best.name
-    if not best.is_file():
-        raise ConfigError(f"{run}: the best checkpoint {old.get('best_checkpoint')!r} is missing")
+    best = best_checkpoint(run)  # (in the run's own folder if it was moved)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
     train = load_split(Path(args["data_root"]) / args["task"], "train")
     fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
