@@ -50,10 +50,20 @@ def error_curves(panels: dict[str, dict[str, list[float]]], dts: dict[str, float
         ax.axvline(4 * dt, color="0.5", ls="--", lw=0.8)
         ax.set_yscale("log")
         ax.set_ylim(_floor([v for c in curves.values() for v in c], 1e-5), 1e2)
-        ax.set_title(task, fontsize=9)
-        ax.set_xlabel("t (s)", fontsize=8)
-        ax.set_ylabel("rel. error", fontsize=8)
-        ax.tick_params(labelsize=7)
+        _label(ax, task, "rel. error")
+    return _save_panels(plt, fig, axes, path)
+
+
+def _label(ax, title: str, ylabel: str) -> None:
+    """A panel's title and axis labels against time, in the small fonts of the report's grids."""
+    ax.set_title(title, fontsize=9)
+    ax.set_xlabel("t (s)", fontsize=8)
+    ax.set_ylabel(ylabel, fontsize=8)
+    ax.tick_params(labelsize=7)
+
+
+def _save_panels(plt, fig, axes, path: str | Path) -> Path:
+    """The legend on the first panel, then the figure written (atomically) and closed."""
     axes[0].legend(fontsize=6)
     fig.tight_layout()
     save_figure(fig, path, dpi=80)
@@ -73,15 +83,8 @@ def energy_panels(panels: dict[str, dict[str, list[float]]], dts: dict[str, floa
             ax.plot(np.arange(len(energy)) * dt, energy, label=label, **style)
         e0 = series["truth"][0]
         ax.set_ylim(e0 - 0.2, e0 + 0.2)
-        ax.set_title(task, fontsize=9)
-        ax.set_xlabel("t (s)", fontsize=8)
-        ax.set_ylabel("true energy (J)", fontsize=8)
-        ax.tick_params(labelsize=7)
-    axes[0].legend(fontsize=6)
-    fig.tight_layout()
-    save_figure(fig, path, dpi=80)
-    plt.close(fig)
-    return Path(path)
+        _label(ax, task, "true energy (J)")
+    return _save_panels(plt, fig, axes, path)
 
 
 def error_bars(
