@@ -13,7 +13,7 @@ import torch
 
 import diffcontact
 from diffcontact.errors import ConfigError
-from diffcontact.models import MODEL_NAMES
+from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.module import ContactLightningModule
 from diffcontact.train.summary import learned_summary
@@ -153,8 +153,8 @@ def train_run(
     from checkpoints/last.ckpt.
     Returns the learned summary.
     """
-    if model not in MODEL_NAMES:
-        raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES)}")
+    if model not in MODEL_NAMES and model not in BASELINE_NAMES:
+        raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
     own = task_training(task)
     settings = resolve_preset(
         preset,
@@ -190,7 +190,7 @@ def train_run(
         schedule=schedule,
         coef_lr=coef_lr,
         mu_coef_lr=mu_coef_lr,
-        reg=MODEL_NAMES[model][1] if reg is None else reg,
+        reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
         weight_decay=weight_decay,
         mu_transform=mu_transform,
         e_transform=e_transform,
@@ -208,7 +208,10 @@ def train_run(
 
     started = time.perf_counter()
     pl.seed_everything(seed, workers=True)
-    data = ContactDataModule(task, root=data_root, batch_size=batch_size, dtype=getattr(torch, dtype), seed=seed)
+    mode = "pairs" if model in BASELINE_NAMES else "chunks"  # (the baselines train on one-step pairs)
+    data = ContactDataModule(
+        task, root=data_root, batch_size=batch_size, mode=mode, dtype=getattr(torch, dtype), seed=seed
+    )
     module = ContactLightningModule(
         task,
         model,
