@@ -137,6 +137,19 @@ def test_in_cp_sp_moves_positions_by_euler_and_is_given_the_true_gravity():
     assert torch.allclose(inv, torch.tensor([10.0, 4000.0, 4000.0], dtype=torch.float64))
 
 
+def test_in_cp_sp_treats_identical_balls_alike():
+    """BP5-e's balls are identical (mass, radius, μ, e): relabelling two of them relabels the prediction (an
+    interaction network is equivariant under permutations of equal objects; no loop order may leak in)."""
+    task = dc.build_task("BP5-e")
+    net = build_model(task, "IN-CP-SP", seed=4)
+    s = task.sample(3, seed=5)
+    perm = torch.tensor([1, 0, 3, 2, 4])
+    x1, v1 = net.step(s.x, s.v)
+    xp, vp = net.step(s.x[:, perm], s.v[:, perm])
+    assert torch.allclose(xp, x1[:, perm], atol=1e-13) and torch.allclose(vp, v1[:, perm], atol=1e-13)
+    assert not torch.allclose(v1[:, 0], v1[:, 1])  # (not trivially equal)
+
+
 @pytest.mark.parametrize("model", ["IN-CP-SP", "IN-CP-CLNN"])
 def test_gradcheck_of_one_interaction_network_step(model):
     """float64: one step's derivatives w.r.t. the state and a bias of each network against finite differences."""
