@@ -218,4 +218,5 @@ def test_a_baseline_run_directory_holds_the_same_files_and_its_learned_json(data
         assert learned == json.loads(json.dumps(summary))
         assert "mu" not in learned and "e" not in learned and learned["model"] == model
         assert ("mass_ratio" in learned) == (model != "IN-CP-SP")
+        assert learned["inertia"].get("given", False) == (model == "IN-CP-SP")
         assert json.loads((run / "config.json").read_text())["args"]["model"] == model
