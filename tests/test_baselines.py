@@ -11,6 +11,7 @@ import torch
 import diffcontact as dc
 from diffcontact.data.generate import generate_dataset
 from diffcontact.dynamics.lagrangian import potential_force
+from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, build_model
 from diffcontact.models.baselines import InteractionNetCLNN, InteractionNetSP, MLPCollisionCLNN, relation_graph
 from diffcontact.models.baselines.graphs import EQUALITY
@@ -220,3 +221,5 @@ def test_a_baseline_run_directory_holds_the_same_files_and_its_learned_json(data
         assert ("mass_ratio" in learned) == (model != "IN-CP-SP")
         assert learned["inertia"].get("given", False) == (model == "IN-CP-SP")
         assert json.loads((run / "config.json").read_text())["args"]["model"] == model
+    with pytest.raises(ConfigError, match="reg = 0.1 is for the regularised models"):
+        build_model(dc.build_task("BP1"), "IN-CP-SP", reg=0.1)

@@ -61,6 +61,8 @@ def build_model(
     from diffcontact.models.baselines import BASELINE_NAMES, build_baseline
 
     if name in BASELINE_NAMES:  # (the paper's baselines: same interface, see models/baselines)
+        if reg is not None:
+            raise ConfigError(f"reg = {reg:g} is for the regularised models (CMr-...), not {name}")
         return build_baseline(task, name, hidden=hidden, layers=layers, seed=seed)
     if name not in MODEL_NAMES:
         raise ConfigError(f"model = {name!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")

@@ -35,7 +35,8 @@ __all__ = [
 
 def _gravity_force(task) -> torch.Tensor:
     """The true gravity force −∇V_g (P, d) in N: the task potential's Gravity terms (linear, so constant)."""
-    terms = [t for t in getattr(task.params.potential, "terms", ()) if isinstance(t, Gravity)]
+    pot = task.params.potential
+    terms = [t for t in (pot.terms if isinstance(pot, SumPotential) else (pot,)) if isinstance(t, Gravity)]
     x = torch.zeros(1, task.system.n_points, task.system.d, dtype=torch.float64)
     return potential_force(SumPotential(*terms), x)[0].detach()
 
