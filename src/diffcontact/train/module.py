@@ -22,6 +22,7 @@ from diffcontact.systems.registry import build_task
 log = logging.getLogger(__name__)
 
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
+TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
 
 
 class ContactLightningModule(pl.LightningModule):
@@ -44,10 +45,13 @@ class ContactLightningModule(pl.LightningModule):
         coef_lr: float = 1.0,
         mu_coef_lr: float | None = None,
         reg: float | None = None,
+        train_loss: str = "l1",
     ):
         super().__init__()
         if schedule not in SCHEDULES:
             raise ConfigError(f"schedule = {schedule!r} is not one of {list(SCHEDULES)}")
+        if train_loss not in TRAIN_LOSSES:
+            raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.task = build_task(task)
@@ -87,14 +91,17 @@ class ContactLightningModule(pl.LightningModule):
         """Contact problems the solver failed on so far (impulses replaced by zeros)."""
         return sum(self.solver_failures_by_status.values())
 
-    def loss(self, batch) -> torch.Tensor:
-        """Mean absolute error of the predicted chunk: x, v (B, L, P, d); a baseline's one-step pair (x0, v0, x1,
-        v1, ...) is the chunk of its two frames."""
+    def loss(self, batch, kind: str | None = None) -> torch.Tensor:
+        """Mean absolute (``kind`` "l1") or squared ("mse") error of the predicted chunk: x, v (B, L, P, d); a
+        baseline's one-step pair (x0, v0, x1, v1, ...) is the chunk of its two frames.  ``kind`` None: the
+        ``train_loss`` in training mode, L1 otherwise (validation)."""
+        kind = kind or (self.hparams.train_loss if self.training else "l1")
         x, v = batch[0], batch[1]
         if self.baseline:
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
         px, pv = self.net(x[:, 0], v[:, 0], x.shape[1])
-        return 0.5 * ((px - x).abs().mean() + (pv - v).abs().mean())
+        err = (lambda r: r.abs()) if kind == "l1" else torch.square
+        return 0.5 * (err(px - x).mean() + err(pv - v).mean())
 
     def training_step(self, batch, batch_idx: int):
         opt = self.optimizers()

@@ -138,6 +138,7 @@ def train_run(
     coef_lr: float | None = None,
     mu_coef_lr: float | None = None,
     reg: float | None = None,
+    train_loss: str = "l1",
     dtype: str = "float32",
     resume: bool = False,
     progress: bool = True,
@@ -147,6 +148,8 @@ def train_run(
     ``preset`` names the training settings (``PRESETS``), which the task file's ``[training]`` table adjusts for
     the default preset; ``epochs``, ``lr``, ``schedule``, ``batch_size``, the transforms and the rates override
     them where given.
+    ``train_loss`` ("l1", the paper's, or "mse", a deviation measured for the baselines in
+    docs/baselines.md) is the training loss; val/loss, which selects the checkpoint, is always L1.
 
     The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last, every
     epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  ``resume`` continues
@@ -192,6 +195,7 @@ def train_run(
         mu_coef_lr=mu_coef_lr,
         reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
         weight_decay=weight_decay,
+        train_loss=train_loss,
         mu_transform=mu_transform,
         e_transform=e_transform,
         dtype=dtype,
@@ -225,6 +229,7 @@ def train_run(
         coef_lr=coef_lr,
         mu_coef_lr=mu_coef_lr,
         reg=reg,
+        train_loss=train_loss,
     )
     loggers = [pl.loggers.CSVLogger(run / "logs", name="csv"), pl.loggers.TensorBoardLogger(run / "logs", name="tb")]
     checkpoints = pl.callbacks.ModelCheckpoint(
