@@ -99,7 +99,11 @@ def generate(
 @app.command("train")
 def train(
     task: str = typer.Argument(..., help="Task name (its dataset must exist: diffcontact generate TASK)."),
-    model: str = typer.Option(None, "--model", help="CM-CD-CLNN (default), CM-CD-CHNN, CMr-CD-CLNN or CMr-CD-CHNN."),
+    model: str = typer.Option(
+        None,
+        "--model",
+        help="CM-CD-CLNN (default), CM-CD-CHNN, CMr-CD-CLNN, CMr-CD-CHNN; baselines MLP-CD-CLNN, IN-CP-CLNN, IN-CP-SP.",
+    ),
     preset: str = typer.Option(
         None,
         "--preset",
@@ -165,8 +169,9 @@ def train(
         note = f" ({hidden} slots without the contacts that identify it)" if hidden and err is not None else ""
         shown_err = "not identifiable from the training data" if err is None else f"{err:.4f}{note}"
         typer.echo(f"{key:10s} learned/true: {shown}{more}   max |error| = {shown_err}")
-    spread = summary["inertia"]["spread"]
-    typer.echo(f"inertia    on the motions the constraints allow, up to the potential's scale: within {spread:.2%}")
+    if not summary["inertia"].get("given"):  # (IN-CP-SP learns no inertia)
+        spread = summary["inertia"]["spread"]
+        typer.echo(f"inertia    on the motions the constraints allow, up to the potential's scale: within {spread:.2%}")
 
 
 @app.command("summarize")

@@ -138,9 +138,9 @@ def _contact_model_net(run: Path, config: dict, checkpoint: Path, task: Task) ->
 
 def _register_builtin_models() -> None:
     """The models of the package (every process that evaluates sees them; a new model family adds its line here)."""
-    from diffcontact.models import MODEL_NAMES
+    from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 
-    register_model(MODEL_NAMES, _contact_model_net)
+    register_model((*MODEL_NAMES, *BASELINE_NAMES), _contact_model_net)
 
 
 _register_builtin_models()

@@ -89,6 +89,4 @@ TRAJECTORY_ERROR = {
     "Gyro": {"CM-CD-CLNN": (2.389e-3, 1.357e-3)},
 }
 
-# the published baselines (spec F.2), rows of the report even before they can be trained here
-BASELINES = ("MLP-CD-CLNN", "IN-CP-CLNN", "IN-CP-SP")
 ELASTIC = ("BP5-e", "CP3-e", "Gyro-e")  # the Fig. 5 panels

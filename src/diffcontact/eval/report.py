@@ -17,7 +17,7 @@ import diffcontact
 from diffcontact.eval import published
 from diffcontact.eval.files import write_text
 from diffcontact.eval.reproduce import evaluated, run_dir
-from diffcontact.models import MODEL_NAMES
+from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 
 HOMOGENEOUS = ("BP5-e", "CP3-e", "CP3", "Rope", "Gyro-e", "Gyro")
 
@@ -31,7 +31,7 @@ def _status(out: Path, task: str, model: str, seed: int) -> str:
         record = {}
     if record.get("status") == "failed":
         return f"failed: {record.get('error', '')}"
-    if model not in MODEL_NAMES and not (run / "config.json").is_file():
+    if model not in (*MODEL_NAMES, *BASELINE_NAMES) and not (run / "config.json").is_file():
         return "missing (not trainable yet)"
     return "not run"
 

@@ -26,11 +26,10 @@ from diffcontact.config import available_tasks
 from diffcontact.errors import ConfigError
 from diffcontact.eval.files import write_json
 from diffcontact.eval.loading import registered_models
-from diffcontact.eval.published import BASELINES
-from diffcontact.models import MODEL_NAMES
+from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.systems.registry import BENCHMARK_TASKS
 
-MODELS = (*MODEL_NAMES, *BASELINES)
+MODELS = (*MODEL_NAMES, *BASELINE_NAMES)
 # --quick: tiny datasets, one epoch, short rollouts (tests the pipeline, not the method)
 QUICK = {"n_train": 16, "n_val": 4, "n_test": 5, "frames": 30, "epochs": 1, "batch_size": 8, "eval_frames": 20}
 
@@ -75,7 +74,7 @@ def plan(out: Path, tasks: list[str], models: list[str], seeds: list[int]) -> li
                 run = run_dir(out, task, model, seed)
                 if evaluated(run, task, model):
                     cells.append(Cell(task, model, seed, run, "done"))
-                elif model in MODEL_NAMES:
+                elif model in MODELS:
                     cells.append(
                         Cell(task, model, seed, run, "evaluate" if (run / "learned.json").is_file() else "train")
                     )

@@ -1,6 +1,7 @@
-"""Learnable models: the Simulator with learnable Params (CM/CMr × CLNN/CHNN)."""
+"""Learnable models: the Simulator with learnable Params (CM/CMr × CLNN/CHNN), and the baselines."""
 
+from diffcontact.models.baselines import BASELINE_NAMES
 from diffcontact.models.model import MODEL_NAMES, ContactModelNet, build_model
 from diffcontact.models.params import LearnedParams, MLPPotential
 
-__all__ = ["MODEL_NAMES", "ContactModelNet", "LearnedParams", "MLPPotential", "build_model"]
+__all__ = ["BASELINE_NAMES", "MODEL_NAMES", "ContactModelNet", "LearnedParams", "MLPPotential", "build_model"]

@@ -50,15 +50,22 @@ def build_model(
     on_failure: str = "raise",
     solver=None,
     reg: float | None = None,
-) -> ContactModelNet:
-    """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters.
+) -> nn.Module:
+    """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters; or one of the
+    baselines' ``BASELINE_NAMES`` (:func:`diffcontact.models.baselines.build_baseline`: hidden, layers, seed apply).
 
     ``solver`` (signature of :func:`diffcontact.solver.solve_cone_qp`) replaces the contact solver, e.g. to count
     failures; ``on_failure`` is passed to the default one.  ``reg`` replaces a CMr model's regularisation of the
     effective mass (A + reg·I, 1/kg; default ``CMR_REG``, the paper's).
     """
+    from diffcontact.models.baselines import BASELINE_NAMES, build_baseline
+
+    if name in BASELINE_NAMES:  # (the paper's baselines: same interface, see models/baselines)
+        if reg is not None:
+            raise ConfigError(f"reg = {reg:g} is for the regularised models (CMr-...), not {name}")
+        return build_baseline(task, name, hidden=hidden, layers=layers, seed=seed)
     if name not in MODEL_NAMES:
-        raise ConfigError(f"model = {name!r} is not one of {list(MODEL_NAMES)}")
+        raise ConfigError(f"model = {name!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
     dynamics, default_reg = MODEL_NAMES[name]
     if reg is not None and not default_reg:
         raise ConfigError(f"reg = {reg:g} is for the regularised models (CMr-...), not {name}")

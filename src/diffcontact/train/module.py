@@ -15,17 +15,19 @@ import lightning.pytorch as pl
 import torch
 
 from diffcontact.errors import ConfigError
-from diffcontact.models import build_model
+from diffcontact.models import BASELINE_NAMES, build_model
 from diffcontact.solver import Status, solve_cone_qp
 from diffcontact.systems.registry import build_task
 
 log = logging.getLogger(__name__)
 
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
+TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
 
 
 class ContactLightningModule(pl.LightningModule):
-    """Trains ``model`` (one of ``diffcontact.models.MODEL_NAMES``) on the chunks of ``task``."""
+    """Trains ``model`` (one of ``diffcontact.models.MODEL_NAMES``) on the chunks of ``task``, or a baseline
+    (``BASELINE_NAMES``) on their one-step pairs (batches of ``PairDataset``)."""
 
     def __init__(
         self,
@@ -43,10 +45,13 @@ class ContactLightningModule(pl.LightningModule):
         coef_lr: float = 1.0,
         mu_coef_lr: float | None = None,
         reg: float | None = None,
+        train_loss: str = "l1",
     ):
         super().__init__()
         if schedule not in SCHEDULES:
             raise ConfigError(f"schedule = {schedule!r} is not one of {list(SCHEDULES)}")
+        if train_loss not in TRAIN_LOSSES:
+            raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.task = build_task(task)
@@ -64,6 +69,8 @@ class ContactLightningModule(pl.LightningModule):
             reg=reg,
         )
         self.net = net.to(getattr(torch, dtype))
+        self.baseline = model in BASELINE_NAMES
+        self.learns_contacts = self.learned is not None and self.learned.n_slots > 0  # (μ and e)
 
     def _counting_solver(self, A, q, mu, lower=None, active=None, **_):
         """The contact solver, continuing with zero impulses on failure and counting them."""
@@ -75,15 +82,26 @@ class ContactLightningModule(pl.LightningModule):
         return f
 
     @property
+    def learned(self):
+        """The net's learned physical parameters (LearnedParams), or None (IN-CP-SP learns none)."""
+        return self.net.params
+
+    @property
     def solver_failures(self) -> int:
         """Contact problems the solver failed on so far (impulses replaced by zeros)."""
         return sum(self.solver_failures_by_status.values())
 
-    def loss(self, batch) -> torch.Tensor:
-        """Mean absolute error of the predicted chunk: x, v (B, L, P, d)."""
+    def loss(self, batch, kind: str | None = None) -> torch.Tensor:
+        """Mean absolute (``kind`` "l1") or squared ("mse") error of the predicted chunk: x, v (B, L, P, d); a
+        baseline's one-step pair (x0, v0, x1, v1, ...) is the chunk of its two frames.  ``kind`` None: the
+        ``train_loss`` in training mode, L1 otherwise (validation)."""
+        kind = kind or (self.hparams.train_loss if self.training else "l1")
         x, v = batch[0], batch[1]
+        if self.baseline:
+            x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
         px, pv = self.net(x[:, 0], v[:, 0], x.shape[1])
-        return 0.5 * ((px - x).abs().mean() + (pv - v).abs().mean())
+        err = (lambda r: r.abs()) if kind == "l1" else torch.square
+        return 0.5 * (err(px - x).mean() + err(pv - v).mean())
 
     def training_step(self, batch, batch_idx: int):
         opt = self.optimizers()
@@ -93,7 +111,8 @@ class ContactLightningModule(pl.LightningModule):
         grads = [p.grad for p in self.net.parameters() if p.grad is not None]
         if all(bool(torch.isfinite(g).all()) for g in grads) and bool(torch.isfinite(loss)):
             opt.step()
-            self.net.params.project_()
+            if self.learns_contacts:
+                self.learned.project_()
         else:  # skipped entirely: no update, no weight decay
             self.skipped_steps += 1
             opt.zero_grad()
@@ -109,34 +128,37 @@ class ContactLightningModule(pl.LightningModule):
         self.log("train/lr", self.optimizers().param_groups[0]["lr"])  # (the rate this epoch used)
         if self.hparams.schedule != "constant":  # (manual optimisation: the schedule is stepped here)
             self.lr_schedulers().step()
-        p = self.net.params
-        self.log_dict({"learned/mu_mean": p.mu.detach().mean(), "learned/e_mean": p.e.detach().mean()}, prog_bar=True)
+        p = self.learned
+        if self.learns_contacts:
+            means = {"learned/mu_mean": p.mu.detach().mean(), "learned/e_mean": p.e.detach().mean()}
+            self.log_dict(means, prog_bar=True)
         self.log_dict(
             {
                 "train/skipped_steps": float(self.skipped_steps),
                 "train/solver_failures": float(self.solver_failures),
             }
         )
-        ratios = self.mass_ratio()
-        for i, r in enumerate(ratios.tolist()):
-            self.log(f"learned/mass_ratio_{i}", r)
+        if p is not None:
+            for i, r in enumerate(self.mass_ratio().tolist()):
+                self.log(f"learned/mass_ratio_{i}", r)
 
     def mass_ratio(self) -> torch.Tensor:
         """Learned masses divided by the first body's: (n_bodies,)."""
-        m = self.net.params.inertia.masses.detach()
+        m = self.learned.inertia.masses.detach()
         return m / m[0]
 
     def configure_optimizers(self):
         # e (and μ unless mu_coef_lr is given) at coef_lr × lr: Adam moves a parameter about lr per step, whatever
         # its gradient's size
-        p, hp = self.net.params, self.hparams
+        p, hp = self.learned, self.hparams
         mu_coef = hp.coef_lr if hp.mu_coef_lr is None else hp.mu_coef_lr
-        coefs = {id(p.mu_raw), id(p.e_raw)}
-        groups = [
-            {"params": [t for t in self.net.parameters() if id(t) not in coefs]},
-            {"params": [p.mu_raw], "lr": hp.lr * mu_coef},
-            {"params": [p.e_raw], "lr": hp.lr * hp.coef_lr},
-        ]
+        coefs = {id(p.mu_raw), id(p.e_raw)} if self.learns_contacts else set()
+        groups = [{"params": [t for t in self.net.parameters() if id(t) not in coefs]}]
+        if self.learns_contacts:
+            groups += [
+                {"params": [p.mu_raw], "lr": hp.lr * mu_coef},
+                {"params": [p.e_raw], "lr": hp.lr * hp.coef_lr},
+            ]
         opt = torch.optim.AdamW(groups, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
         epochs = self.trainer.max_epochs if self._trainer is not None and self.trainer.max_epochs else 1
         if self.hparams.schedule == "constant":

@@ -13,9 +13,9 @@ import torch
 
 import diffcontact
 from diffcontact.errors import ConfigError
-from diffcontact.models import MODEL_NAMES
+from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.train.datamodule import ContactDataModule
-from diffcontact.train.module import ContactLightningModule
+from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule
 from diffcontact.train.summary import learned_summary
 
 
@@ -178,7 +178,7 @@ class _ShuffleState(pl.Callback):
 # The settings a run records in config.json ("args") that a resumed run must keep (epochs may grow).
 RUN_SETTINGS = (
     "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "reg",
-    "weight_decay", "mu_transform", "e_transform", "dtype", "data_root",
+    "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss",
 )  # fmt: skip
 
 
@@ -196,6 +196,7 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
         trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
     except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
         raise ConfigError(f"--resume: {run} is not a readable training run (config.json, {last.name}): {err}") from err
+    recorded.setdefault("train_loss", "l1")  # (runs from before the setting existed trained on L1)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
         raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
@@ -240,6 +241,7 @@ def train_run(
     coef_lr: float | None = None,
     mu_coef_lr: float | None = None,
     reg: float | None = None,
+    train_loss: str | None = None,
     dtype: str | None = None,
     resume: bool = False,
     progress: bool = True,
@@ -250,6 +252,8 @@ def train_run(
     ``preset`` names the training settings (``PRESETS``, default "default"), which the task file's ``[training]``
     table adjusts for the default preset; ``epochs``, ``lr``, ``schedule``, ``batch_size``, the transforms and the
     rates override them where given (weight decay 1e-4 and float32 by default).
+    ``train_loss`` ("l1", the paper's and the default, or "mse", a deviation measured for the baselines in
+    docs/baselines.md) is the training loss; val/loss, which selects the checkpoint, is always L1.
 
     The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last.ckpt,
     every epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  A directory that
@@ -265,7 +269,7 @@ def train_run(
         given = dict(
             task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
             coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, reg=reg, weight_decay=weight_decay, mu_transform=mu_transform,
-            e_transform=e_transform, dtype=dtype, data_root=data_root,
+            e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss,
         )  # fmt: skip
         args = _resume_settings(run, given, epochs)
     else:
@@ -275,8 +279,10 @@ def train_run(
                 "--out (or delete that run)"
             )
         model, preset = model or "CM-CD-CLNN", preset or "default"
-        if model not in MODEL_NAMES:
-            raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES)}")
+        if model not in MODEL_NAMES and model not in BASELINE_NAMES:
+            raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
+        if train_loss not in (None, *TRAIN_LOSSES):
+            raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
         own = task_training(task)
         settings = resolve_preset(
             preset,
@@ -303,8 +309,9 @@ def train_run(
             schedule=settings["schedule"],
             coef_lr=settings["coef_lr"],
             mu_coef_lr=settings["mu_coef_lr"],
-            reg=MODEL_NAMES[model][1] if reg is None else reg,
+            reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
             weight_decay=1e-4 if weight_decay is None else weight_decay,
+            train_loss=train_loss or "l1",
             mu_transform=settings["mu_transform"],
             e_transform=settings["e_transform"],
             dtype=dtype or "float32",
@@ -323,15 +330,17 @@ def train_run(
 
     started = time.perf_counter()
     pl.seed_everything(seed, workers=True)
+    mode = "pairs" if model in BASELINE_NAMES else "chunks"  # (the baselines train on one-step pairs)
     data = ContactDataModule(
-        task, root=args["data_root"], batch_size=args["batch_size"], dtype=getattr(torch, dtype), seed=seed
+        task, root=args["data_root"], batch_size=args["batch_size"], mode=mode, dtype=getattr(torch, dtype), seed=seed
     )
     module = ContactLightningModule(
         task,
         model,
         seed=seed,
         dtype=dtype,
-        reg=args["reg"] if MODEL_NAMES[model][1] else None,  # (the CM models have none)
+        reg=args["reg"] if model in MODEL_NAMES and MODEL_NAMES[model][1] else None,  # (CM models, baselines: none)
+        train_loss=args["train_loss"],
         **{
             k: args[k]
             for k in ("lr", "weight_decay", "mu_transform", "e_transform", "schedule", "coef_lr", "mu_coef_lr")

@@ -119,6 +119,10 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> 
     (extended bodies only): second moments per unit mass in m², body by body and axis by axis (see the module
     docstring for what of them is identifiable); inertia: ``inertia_spread``, what is.
     """
+    from diffcontact.models.baselines import Baseline
+
+    if isinstance(net, Baseline):
+        return baseline_summary(net, task, chunk_x)
     truth, learned = task.params, net.params
     n_slots = truth.mu.numel()
     counts = slot_contacts(task, chunk_x, chunk_v)
@@ -141,4 +145,27 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> 
     out["collisions"] = counts["collisions"].tolist()
     out["collisions_slipping"] = counts["slipping"].tolist()
     out["collisions_bound"] = counts["bound"].tolist()
+    return out
+
+
+def baseline_summary(net, task, chunk_x: torch.Tensor) -> dict:
+    """What a baseline learned (``learned.json``): ``{"model", "weights"[, "mass_ratio"[, "moments"]], "inertia"}``.
+
+    The inertia parts (as in :func:`learned_summary`) where the baseline has a learned CLNN (MLP-CD-CLNN,
+    IN-CP-CLNN); no μ or e (the baselines do not learn them: IN-CP-* are given the true ones).  IN-CP-SP learns no
+    physical parameter: its "inertia" is that of the true inertia it is given (``"given": true``).  ``weights``: the
+    number of trained scalars.  chunk_x: (N, L, P, d) training chunks in m.
+    """
+    out = {"model": net.name, "weights": sum(p.numel() for p in net.parameters())}
+    learned, truth = net.params, task.params
+    if learned is None:
+        out["inertia"] = {**inertia_spread(task.system, truth.inertia, truth.inertia, chunk_x[:64, 0]), "given": True}
+        return out
+    m_learned, m_true = learned.inertia.masses.detach().double(), truth.inertia.masses.double()
+    out["mass_ratio"] = compare(m_learned / m_learned[0], m_true / m_true[0])
+    if truth.inertia.moments.numel():
+        out["moments"] = compare(
+            learned.inertia.moments.detach().double().flatten(), truth.inertia.moments.double().flatten()
+        )
+    out["inertia"] = inertia_spread(task.system, learned.inertia, truth.inertia, chunk_x[:64, 0].detach())
     return out

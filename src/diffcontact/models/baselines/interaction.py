@@ -1,0 +1,109 @@
+"""The interaction-network baselines (paper Sec. 5, spec F.2; Battaglia et al. 2016).
+
+IN-CP-SP: the interaction network alone predicts each point's next velocity from the state, the true inverse
+inertia and radii (object attributes), the true μ and e (relation attributes) and the true gravity (external
+force); positions advance by explicit Euler with the old velocity, x' = x + v dt.
+IN-CP-CLNN: one RK4 step of the learned CLNN (no collision detection), then the network adds Δv to the velocity,
+given the learned inverse inertia, the true radii, μ and e, and the learned potential's force −∇V (the published
+code passed +∇V).
+
+One step, batched over samples and relations (static object weights, no loop):
+    relation input   [o_recv − o_send (2d), a_recv (2), a_send (2), relation attributes (D_R)]
+    effects          φ_R (hidden ReLU layers) -> effect size, summed per receiver
+    object input     [x, v (2d), attributes (2), external force (d), summed effect]
+    output           φ_O (one hidden ReLU layer) -> d per point
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from diffcontact.dynamics.lagrangian import potential_force
+from diffcontact.models.baselines.base import Baseline, mlp, point_inverse_inertia
+from diffcontact.models.baselines.graphs import RelationGraph
+from diffcontact.models.params import LearnedParams
+from diffcontact.simulator import Simulator
+
+N_OBJECT_ATTRIBUTES = 2  # inverse inertia, contact radius
+SIZES = {  # (relational hidden, relational layers, effect, object hidden), spec F.2
+    "IN-CP-CLNN": (150, 4, 50, 100),
+    "IN-CP-SP": (300, 4, 50, 200),
+}
+
+
+class InteractionNetwork(nn.Module):
+    """φ_R and φ_O over a fixed :class:`RelationGraph` (its weights and relation attributes held as buffers)."""
+
+    def __init__(self, graph: RelationGraph, rel_attr: torch.Tensor, d: int, sizes: tuple, generator):
+        super().__init__()
+        rel_hidden, rel_layers, effect, obj_hidden = sizes
+        self.P, self.d = graph.n_points, d
+        self.register_buffer("recv", graph.recv.clone())
+        self.register_buffer("send", graph.send.clone())
+        self.register_buffer("static", graph.static.clone())
+        self.register_buffer("radius", graph.radius.clone())
+        self.register_buffer("rel_attr", rel_attr.clone())
+        n_rel_in = 2 * d + 2 * N_OBJECT_ATTRIBUTES + rel_attr.shape[-1]
+        n_obj_in = 2 * d + N_OBJECT_ATTRIBUTES + d + effect
+        self.relational = mlp([n_rel_in] + [rel_hidden] * rel_layers + [effect], generator).to(torch.float64)
+        self.object = mlp([n_obj_in, obj_hidden, d], generator).to(torch.float64)
+
+    @property
+    def input_sizes(self) -> tuple[int, int]:
+        """(relation input, object input) widths."""
+        return self.relational[0].in_features, self.object[0].in_features
+
+    def forward(self, x: torch.Tensor, v: torch.Tensor, inv_inertia: torch.Tensor, force: torch.Tensor) -> torch.Tensor:
+        """Per-point output (B, P, d) from x, v (B, P, d), inverse inertia (P,) and external force (B, P, d)."""
+        B = x.shape[0]
+        S = self.static.shape[0]
+        obj = torch.cat(
+            [torch.cat([x, self.static.expand(B, S, self.d)], 1), torch.cat([v, v.new_zeros(B, S, self.d)], 1)], -1
+        )  # (B, N_O, 2d)
+        inv = torch.cat([inv_inertia.to(x), x.new_zeros(S)])
+        attr = torch.stack([inv, self.radius], -1)  # (N_O, 2)
+        rel = torch.cat(
+            [
+                torch.einsum("ro,bof->brf", self.recv - self.send, obj),
+                (self.recv @ attr).expand(B, -1, -1),
+                (self.send @ attr).expand(B, -1, -1),
+                self.rel_attr.expand(B, -1, -1),
+            ],
+            -1,
+        )
+        effects = torch.einsum("ro,bre->boe", self.recv[:, : self.P], self.relational(rel))  # (B, P, effect)
+        inp = torch.cat([obj[:, : self.P], attr[: self.P].expand(B, -1, -1), force, effects], -1)
+        return self.object(inp)
+
+
+class InteractionNetSP(Baseline):
+    """IN-CP-SP: v' = IN(x, v), x' = x + v dt, given the true inverse inertia (P,), gravity force (P, d)."""
+
+    def __init__(self, graph: RelationGraph, rel_attr, inv_inertia, gravity_force, d: int, dt: float, generator):
+        super().__init__()
+        self.name, self.dt, self.params = "IN-CP-SP", dt, None
+        self.net = InteractionNetwork(graph, rel_attr, d, SIZES["IN-CP-SP"], generator)
+        self.register_buffer("inv_inertia", inv_inertia.clone())
+        self.register_buffer("gravity", gravity_force.clone())
+
+    def step(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        force = self.gravity.expand_as(x)
+        return x + v * self.dt, self.net(x, v, self.inv_inertia, force)
+
+
+class InteractionNetCLNN(Baseline):
+    """IN-CP-CLNN: (x', v_c) = learned CLNN step; v' = v_c + IN(x', v_c) with the learned inertia and −∇V(x')."""
+
+    def __init__(
+        self, simulator: Simulator, params: LearnedParams, graph: RelationGraph, rel_attr, dt: float, generator
+    ):
+        super().__init__()
+        self.name, self.simulator, self.params, self.dt = "IN-CP-CLNN", simulator, params, dt
+        self.net = InteractionNetwork(graph, rel_attr, simulator.system.d, SIZES["IN-CP-CLNN"], generator)
+
+    def step(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        p = self.params()
+        x1, v1 = self.simulator.flow(p, x, v, self.dt)
+        inv = point_inverse_inertia(p.inertia.masses, p.inertia.moments)
+        return x1, v1 + self.net(x1, v1, inv, potential_force(p.potential, x1))
