@@ -131,6 +131,9 @@ def train(
         None, "--reg", help="CMr models: the regularisation A + reg·I of the effective mass (default 0.01)."
     ),
     smooth: bool = typer.Option(False, "--smooth", help="softplus μ and sigmoid e instead of the preset's."),
+    train_loss: str = typer.Option(
+        None, "--train-loss", help="l1 (default, the paper's) or mse (measured for the baselines: docs/baselines.md)."
+    ),
     resume: bool = typer.Option(
         False,
         "--resume",
@@ -147,7 +150,7 @@ def train(
         summary = train_run(
             task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
             batch_size=batch_size, lr=lr, schedule=schedule, coef_lr=coef_lr,
-            mu_coef_lr=mu_coef_lr, reg=reg,
+            mu_coef_lr=mu_coef_lr, reg=reg, train_loss=train_loss,
             mu_transform="softplus" if smooth else None, e_transform="sigmoid" if smooth else None, resume=resume,
             progress=progress,
         )  # fmt: skip
