@@ -18,7 +18,16 @@ from diffcontact.systems import build_task
 
 JAC_TOL = 1e-10  # closed-form vs autograd derivatives (float64 rounding)
 DRIFT_TOL = 1e-6  # |Φ| after 100 steps
-torch.set_default_dtype(torch.float64)
+
+
+@pytest.fixture(autouse=True)
+def _float64_default():
+    """Tensors made without a dtype are float64 in these tests, and only in these (set at import, the default
+    leaked into every test module collected after this one)."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
 
 
 def _random_tangent(task, x, gen):

@@ -127,17 +127,7 @@ def test_solution_does_not_depend_on_the_batch_around_it(d):
         assert torch.equal(a.grad[17:18], b.grad)
 
 
-@pytest.fixture
-def float32_default():
-    """torch's default dtype float32 for the test (random_instance draws its masks in the default dtype, and another
-    test module sets float64 at import: the instance must not depend on which modules ran before)."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float32)
-    yield
-    torch.set_default_dtype(old)
-
-
-def test_degenerate_gradient_is_reproducible(monkeypatch, float32_default):
+def test_degenerate_gradient_is_reproducible(monkeypatch):
     """An element whose adjoint needs the least-squares fallback (a singular K: rank-1 A in 3D) gets the same
     gradient bit for bit on every run and alone or in its batch (it varied in the last digits with
     torch.linalg.lstsq)."""
