@@ -21,7 +21,7 @@ def _plane_segment(n: np.ndarray, c: float, view) -> np.ndarray | None:
     return pts
 
 
-def _draw_2d(ax, system: System, x: np.ndarray, hit: bool) -> None:
+def draw_2d(ax, system: System, x: np.ndarray, hit: bool) -> None:
     import matplotlib.patches as mpatches
 
     draw = system.drawing
@@ -57,7 +57,7 @@ def _draw_2d(ax, system: System, x: np.ndarray, hit: bool) -> None:
         ax.set_title("contact", color="tab:red", fontsize=9)
 
 
-def _draw_3d(ax, system: System, x: np.ndarray, hit: bool) -> None:
+def draw_3d(ax, system: System, x: np.ndarray, hit: bool) -> None:
     draw = system.drawing
     (lo, hi) = draw.view[0]
     for n, c in zip(draw.plane_normal.numpy(), draw.plane_offset.numpy()):
@@ -98,10 +98,10 @@ def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | P
         fig.clf()
         if system.d == 3:
             ax = fig.add_subplot(projection="3d")
-            _draw_3d(ax, system, x[t], bool(contact[t]))
+            draw_3d(ax, system, x[t], bool(contact[t]))
         else:
             ax = fig.add_subplot()
-            _draw_2d(ax, system, x[t], bool(contact[t]))
+            draw_2d(ax, system, x[t], bool(contact[t]))
             (x0, x1), (y0, y1) = system.drawing.view
             pad = 0.05 * (x1 - x0)
             ax.set_xlim(x0 - pad, x1 + pad)

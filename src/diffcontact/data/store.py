@@ -72,7 +72,7 @@ def sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def _atomic(path: Path, write) -> None:
+def atomic_write(path: Path, write) -> None:
     """Write through ``write(fh)`` into a temporary file next to ``path``, fsync, then rename onto ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", dir=path.parent)
@@ -97,14 +97,14 @@ def _umask() -> int:
 def save_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> str:
     """Write arrays to ``path`` (.npz, uncompressed) atomically; returns its SHA-256."""
     path = Path(path)
-    _atomic(path, lambda fh: np.savez(fh, **arrays))
+    atomic_write(path, lambda fh: np.savez(fh, **arrays))
     return sha256(path)
 
 
 def save_meta(folder: str | Path, meta: dict[str, Any]) -> None:
     """Write ``meta.json`` atomically."""
     text = json.dumps(meta, indent=2, sort_keys=True) + "\n"
-    _atomic(Path(folder) / META, lambda fh: fh.write(text.encode()))
+    atomic_write(Path(folder) / META, lambda fh: fh.write(text.encode()))
 
 
 def remove_stale(folder: str | Path) -> None:

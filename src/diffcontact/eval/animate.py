@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from diffcontact.eval.files import save_figure, save_gif
-from diffcontact.render import _draw_2d, _draw_3d
+from diffcontact.render import draw_2d, draw_3d
 from diffcontact.systems.base import System
 
 
@@ -24,10 +24,10 @@ def _axes(fig, system: System, rows: int, cols: int, i: int):
 def _draw(ax, system: System, x: np.ndarray, hit: bool) -> None:
     """One frame x (P, d) of ``system`` on ``ax``, axes off."""
     if system.d == 3:
-        _draw_3d(ax, system, x, hit)
+        draw_3d(ax, system, x, hit)
         ax.set_axis_off()
         return
-    _draw_2d(ax, system, x, hit)
+    draw_2d(ax, system, x, hit)
     (x0, x1), (y0, y1) = system.drawing.view
     pad = 0.05 * (x1 - x0)
     ax.set_xlim(x0 - pad, x1 + pad)

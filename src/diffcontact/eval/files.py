@@ -1,5 +1,5 @@
 """Atomic outputs of the evaluation (a temporary file in the same folder, then a rename: an interrupted evaluation
-leaves no half-written file), through :func:`diffcontact.data.store._atomic`."""
+leaves no half-written file), through :func:`diffcontact.data.store.atomic_write`."""
 
 from __future__ import annotations
 
@@ -8,30 +8,30 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcontact.data.store import _atomic
+from diffcontact.data.store import atomic_write
 
 
 def write_json(path: str | Path, obj) -> Path:
     """``obj`` as indented JSON."""
-    _atomic(Path(path), lambda fh: fh.write((json.dumps(obj, indent=2) + "\n").encode()))
+    atomic_write(Path(path), lambda fh: fh.write((json.dumps(obj, indent=2) + "\n").encode()))
     return Path(path)
 
 
 def write_text(path: str | Path, text: str) -> Path:
     """UTF-8 text."""
-    _atomic(Path(path), lambda fh: fh.write(text.encode()))
+    atomic_write(Path(path), lambda fh: fh.write(text.encode()))
     return Path(path)
 
 
 def save_npz(path: str | Path, **arrays) -> Path:
     """Arrays into a compressed .npz."""
-    _atomic(Path(path), lambda fh: np.savez_compressed(fh, **{k: np.asarray(a) for k, a in arrays.items()}))
+    atomic_write(Path(path), lambda fh: np.savez_compressed(fh, **{k: np.asarray(a) for k, a in arrays.items()}))
     return Path(path)
 
 
 def save_figure(fig, path: str | Path, dpi: int) -> Path:
     """A matplotlib figure as PNG."""
-    _atomic(Path(path), lambda fh: fig.savefig(fh, format="png", dpi=dpi))
+    atomic_write(Path(path), lambda fh: fig.savefig(fh, format="png", dpi=dpi))
     return Path(path)
 
 
@@ -39,5 +39,5 @@ def save_gif(path: str | Path, frames: list[np.ndarray], seconds_per_frame: floa
     """RGB frames (H, W, 3) uint8 as a looping GIF."""
     import imageio.v2 as imageio
 
-    _atomic(Path(path), lambda fh: imageio.mimsave(fh, frames, format="GIF", duration=seconds_per_frame, loop=0))
+    atomic_write(Path(path), lambda fh: imageio.mimsave(fh, frames, format="GIF", duration=seconds_per_frame, loop=0))
     return Path(path)

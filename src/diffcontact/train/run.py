@@ -12,6 +12,7 @@ import lightning.pytorch as pl
 import torch
 
 import diffcontact
+from diffcontact.data.store import atomic_write
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.train.datamodule import ContactDataModule
@@ -20,10 +21,8 @@ from diffcontact.train.summary import learned_summary
 
 
 def _write_json(path: Path, obj) -> None:
-    """Write JSON to a temporary file, then rename (an interrupted run leaves no half-written file)."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2) + "\n")
-    os.replace(tmp, path)
+    """Write JSON atomically (``data.store.atomic_write``: an interrupted run leaves no half-written file)."""
+    atomic_write(path, lambda fh: fh.write((json.dumps(obj, indent=2) + "\n").encode()))
 
 
 def loss_curves(csv_dir: Path) -> dict[str, dict[int, float]]:
