@@ -6,7 +6,11 @@ Structure stays known (bodies, constraints, contact geometry); the values are le
 - μ and e "projected" (the default): the parameter is the value itself, kept in μ ≥ 0 and e ∈ [0, 1] by clamping
   after every optimiser step (``project_``), so that a value on its bound still gets the gradient that brings it
   back (ReLU and hardsigmoid have none there: measured on BD5, a slot whose e reached 0 stayed there, true 0.1);
-  initialised μ ~ U[0, 1) like the published ones, e = 0.2 + 0.6·sigmoid(N(0, 1)), inside (0, 1).  Or μ = ReLU(raw) and
+  initialised μ = 0 (the published U[0, 1) is kept for the transforms below) and e = 0.2 + 0.6·sigmoid(N(0, 1)),
+  inside (0, 1).  μ starts at 0 because a slot's loss is flat where its contacts stick: above the truth, a μ that
+  sticks every contact the data show sliding gets no gradient back (measured on BP5: slots 13 and 29, true 0.1,
+  started near 1 and stayed at 1.0 and 1.76 on that plateau, behind a barrier at μ ≈ 0.5; from 0 the loss falls
+  all the way to the truth and both reach it).  Or μ = ReLU(raw) and
   e = hardsigmoid(raw), as published, or the smooth softplus / sigmoid.  One pair for homogeneous tasks (a single
   configured value), one per contact slot otherwise.
 """
@@ -83,7 +87,8 @@ class LearnedParams(nn.Module):
         n_coef = 1 if homogeneous else n_slots
         self.log_mass = nn.Parameter(0.1 * torch.randn(n_bodies, generator=gen, dtype=dtype))
         self.log_moments = nn.Parameter(0.1 * torch.randn(n_bodies, n_moments, generator=gen, dtype=dtype))
-        self.mu_raw = nn.Parameter(torch.rand(n_coef, generator=gen, dtype=dtype))
+        mu_raw = torch.rand(n_coef, generator=gen, dtype=dtype)  # (drawn in both cases: the same later draws)
+        self.mu_raw = nn.Parameter(torch.zeros_like(mu_raw) if mu_transform == "projected" else mu_raw)
         e_raw = torch.randn(n_coef, generator=gen, dtype=dtype)
         # (projected: in [0.2, 0.8], away from the bounds, where hardsigmoid(N(0, 1)) starts 0.3 % of the slots at 0)
         self.e_raw = nn.Parameter(0.2 + 0.6 * torch.sigmoid(e_raw) if e_transform == "projected" else e_raw)
