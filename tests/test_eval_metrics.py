@@ -76,11 +76,14 @@ def test_true_energy_of_a_falling_point_mass_and_its_deviation():
     task = dc.build_task("BP1")  # one point mass m = 0.1 kg, g = 9.81 m/s² along −y
     x = _traj([[[0.5, 0.2], [0.5, 0.3]]])
     v = _traj([[[1.0, 2.0], [0.0, 0.0]]])
-    energy = true_energy(task, x, v)
-    assert energy.shape == (1, 2)
-    # ½ m |v|² + m g y
+    energy, kinetic = true_energy(task, x, v)
+    assert energy.shape == kinetic.shape == (1, 2)
+    # ½ m |v|² + m g y, and ½ m |v|²
     assert energy[0].tolist() == pytest.approx([0.5 * 0.1 * 5 + 0.1 * 9.81 * 0.2, 0.1 * 9.81 * 0.3])
-    dev = energy_deviation(energy + torch.tensor([[0.0, 0.01]], dtype=torch.float64), energy)
-    assert dev[0].tolist() == pytest.approx([0.0, 0.01 / energy[0, 0].item()])
-    with pytest.raises(ValueError, match="initial energy of trajectory 0 is 0 J"):
-        energy_deviation(energy, torch.zeros_like(energy))
+    assert kinetic[0].tolist() == pytest.approx([0.5 * 0.1 * 5, 0.0])
+    dev = energy_deviation(energy + torch.tensor([[0.0, 0.01]], dtype=torch.float64), energy, kinetic)
+    assert dev[0].tolist() == pytest.approx([0.0, 0.01 / 0.25])  # relative to the largest kinetic energy, 0.25 J
+    # independent of the potential's zero: the same deviation with every energy shifted by 1 J
+    assert energy_deviation(energy + 1.01, energy + 1, kinetic)[0].tolist() == pytest.approx([0.04, 0.04])
+    with pytest.raises(ValueError, match="true trajectory 0 never moves"):
+        energy_deviation(energy, energy, torch.zeros_like(energy))

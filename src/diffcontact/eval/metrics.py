@@ -62,19 +62,23 @@ def error_curve(rel: torch.Tensor, frames: int = 50) -> torch.Tensor:
     return rel[:, :frames].mean(0)
 
 
-def true_energy(task, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """The true total energy ½vᵀMv + V(x) of the task's true parameters along trajectories: x, v (N, T, P, d)
-    -> (N, T) in J (float64)."""
+def true_energy(task, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The true total energy ½vᵀMv + V(x) and the true kinetic energy ½vᵀMv of the task's true parameters along
+    trajectories: x, v (N, T, P, d) -> ((N, T), (N, T)) in J (float64)."""
     N, T = x.shape[:2]
     x64, v64 = (a.to(torch.float64).flatten(0, 1) for a in (x, v))
     with torch.no_grad():
-        return task.system.energy(task.params, x64, v64).reshape(N, T)
+        total = task.system.energy(task.params, x64, v64).reshape(N, T)
+        potential = task.system.energy(task.params, x64, torch.zeros_like(v64)).reshape(N, T)
+    return total, total - potential
 
 
-def energy_deviation(energy_hat: torch.Tensor, energy: torch.Tensor) -> torch.Tensor:
-    """|E(ẑ_t) − E(z_t)| / |E(z_0)|: the true energy of the prediction against that of the truth, relative to the
-    true initial energy of each trajectory: (N, T), (N, T) -> (N, T). ValueError where E(z_0) = 0."""
-    e0 = energy[:, :1].abs()
-    if (e0 == 0).any():
-        raise ValueError(f"the true initial energy of trajectory {int((e0[:, 0] == 0).nonzero()[0])} is 0 J")
-    return (energy_hat - energy).abs() / e0
+def energy_deviation(energy_hat: torch.Tensor, energy: torch.Tensor, kinetic: torch.Tensor) -> torch.Tensor:
+    """|E(ẑ_t) − E(z_t)| relative to the energy in motion of each true trajectory, its largest kinetic energy over
+    the frames given (for a conservative system E(z_0) − min_t V(x_t); unlike |E(z_0)| it does not depend on where
+    the potential's zero lies, which makes a pendulum's E(z_0) near 0 J for some starts): energy_hat, energy,
+    kinetic (N, T) in J -> (N, T). ValueError for a trajectory that never moves."""
+    scale = kinetic.amax(1, keepdim=True)
+    if (scale <= 0).any():
+        raise ValueError(f"true trajectory {int((scale[:, 0] <= 0).nonzero()[0])} never moves (kinetic energy 0 J)")
+    return (energy_hat - energy).abs() / scale

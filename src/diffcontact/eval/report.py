@@ -150,8 +150,9 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
         plots.energy_panels(panels, dts, figures / "fig5_energy.png")
         lines += ["![Fig. 5](figures/fig5_energy.png)", ""]
     lines += [
-        "Largest |E(ẑ_t) − E(z_t)| / |E(z_0)| over the frames shown (the true energy of prediction and truth), mean "
-        "and largest over the test trajectories; the paper's elastic tasks are those plotted.",
+        "Largest |E(ẑ_t) − E(z_t)| over the frames shown (the true energy of prediction and truth) relative to the "
+        "trajectory's energy in motion (its largest true kinetic energy), mean and largest over the test "
+        "trajectories; the paper's elastic tasks are those plotted.",
         "",
         "| task | model | frames | mean | max |",
         "|---|---|---|---|---|",

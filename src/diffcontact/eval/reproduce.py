@@ -24,6 +24,7 @@ from pathlib import Path
 
 from diffcontact.config import available_tasks
 from diffcontact.errors import ConfigError
+from diffcontact.eval.evaluate import METRICS_VERSION
 from diffcontact.eval.files import write_json
 from diffcontact.eval.loading import registered_models
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
@@ -57,12 +58,13 @@ def run_dir(out: Path, task: str, model: str, seed: int) -> Path:
 
 
 def evaluated(run: Path, task: str, model: str) -> dict | None:
-    """The run's eval/metrics.json if it is complete and of (task, model), else None."""
+    """The run's eval/metrics.json if it is complete, of (task, model) and of the current metrics, else None."""
     try:
         metrics = json.loads((run / "eval" / "metrics.json").read_text())
     except (OSError, ValueError):
         return None
-    return metrics if (metrics.get("task"), metrics.get("model")) == (task, model) else None
+    same = (metrics.get("task"), metrics.get("model"), metrics.get("metrics_version")) == (task, model, METRICS_VERSION)
+    return metrics if same else None
 
 
 def plan(out: Path, tasks: list[str], models: list[str], seeds: list[int]) -> list[Cell]:
