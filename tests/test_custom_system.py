@@ -59,3 +59,25 @@ def test_the_commands_take_the_task_file_by_its_path(example, monkeypatch):
     assert res.exit_code == 2 and "is a run of task 'box-of-balls', not 'BP1'" in res.output
     res = runner.invoke(app, ["simulate", "./nothing.toml", "--out", "x.npz"])
     assert res.exit_code == 2 and "task file './nothing.toml' does not exist" in res.output
+
+
+def test_the_documented_builder_registers_a_new_system(monkeypatch):
+    """The Python block of docs/custom_systems.md runs as written: a ball dropped onto a ramp lands on it and loses
+    energy (e = 0.5); its task files are validated against the tables it registered."""
+    from diffcontact.config import task_from_dict
+    from diffcontact.errors import ConfigError
+    from diffcontact.systems import registry
+
+    monkeypatch.setattr(registry, "SYSTEMS", dict(registry.SYSTEMS))  # (the registration ends with the test)
+    text = (EXAMPLE.parents[1] / "docs" / "custom_systems.md").read_text()
+    block = text.split("```python\n", 1)[1].split("```", 1)[0]
+    scope: dict = {}
+    exec(compile(block, "docs/custom_systems.md", "exec"), scope)
+    task, x, v, hit = scope["task"], scope["x"], scope["v"], scope["hit"]
+    assert hit.any(1).all() and (task.system.detector.gaps(x[:, -1]) > -1e-3).all()
+    energy = task.system.energy(task.params, x[:, -1], v[:, -1])
+    assert (energy < task.system.energy(task.params, x[:, 0], v[:, 0]) - 1e-3).all()
+    raw = {"task": {"name": "r", "system": "ramp", "dt": 0.01, "frames": 5}, "ramp": {"mass": 1.0, "radus": 0.1}}
+    with pytest.raises(ConfigError, match=r"ramp.radus is not a key of \[ramp\]; allowed keys: mass, radius, angle"):
+        scope["dc"].build_task(task_from_dict(raw))
+    assert "ramp" in registry.SYSTEMS
