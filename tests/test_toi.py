@@ -165,7 +165,7 @@ def test_ball_in_a_corner_with_friction_gets_the_minimum_norm_impulse():
 
 
 def test_rope_penetration_target_is_the_least_squares_projection_for_any_number_of_limits():
-    """Issue 15 ambiguity (2), the rule kept (configs/tasks/Rope.toml, docs/gradients.md): v*_C = J J⁺ v_d, the
+    """Issue 15 ambiguity (2), the rule kept (src/diffcontact/tasks/Rope.toml, docs/gradients.md): v*_C = J J⁺ v_d, the
     orthogonal projection of the wanted normal velocities onto what the limit rows can reach, for any number of
     active limits (the published code switches rule when more limits than points are active). Checked on Rope
     states with more than 10 active limits: Jᵀ(v_d − v*_C) = 0, and v*_C = v_d where J has full row rank."""

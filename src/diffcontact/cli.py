@@ -11,6 +11,9 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
 )
+TASK_HELP = (
+    "A packaged task's name (e.g. BP5-e; diffcontact/tasks/NAME.toml) or the path of a task file (./my_task.toml)."
+)
 bench_app = typer.Typer(help="Benchmarks (medians and ratios measured in one run).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 
@@ -45,7 +48,7 @@ def bench_solver(
 
 @app.command("simulate")
 def simulate(
-    task: str = typer.Argument(..., help="Task name (configs/tasks/NAME.toml) or path to a task file."),
+    task: str = typer.Argument(..., help=TASK_HELP),
     n: int = typer.Option(16, "--n", help="Number of trajectories N."),
     steps: int = typer.Option(0, "--steps", help="Frames T per trajectory (0 = the task's frames)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the initial conditions."),
@@ -54,15 +57,20 @@ def simulate(
     dynamics: str = typer.Option("lagrangian", help="lagrangian (x, v) or hamiltonian (x, p)."),
 ) -> None:
     """Simulate a task with its true parameters (exact contact model CM, float64)."""
+    from diffcontact.errors import ConfigError
     from diffcontact.simulator import simulate_task
 
-    meta = simulate_task(task, n, steps or None, seed, out, gif or None, dynamics)
+    try:
+        meta = simulate_task(task, n, steps or None, seed, out, gif or None, dynamics)
+    except ConfigError as err:
+        typer.echo(f"ConfigError: {err}", err=True)
+        raise typer.Exit(2) from err
     typer.echo(f"wrote {out}: {meta['n']} trajectories x {meta['frames']} frames of {meta['task']}")
 
 
 @app.command("generate")
 def generate(
-    task: str = typer.Argument("", help="Task name (configs/tasks/NAME.toml) or path; omit with --all."),
+    task: str = typer.Argument("", help=TASK_HELP + " Omit with --all."),
     all_tasks: bool = typer.Option(False, "--all", help="Generate the 8 benchmark tasks."),
     out: str = typer.Option("data", "--out", help="Root folder; each task goes to OUT/TASK/."),
     noise: float = typer.Option(0.0, "--noise", help="Std of Gaussian noise on the chunk frames (0 = none)."),
@@ -98,7 +106,7 @@ def generate(
 
 @app.command("train")
 def train(
-    task: str = typer.Argument(..., help="Task name (its dataset must exist: diffcontact generate TASK)."),
+    task: str = typer.Argument(..., help=TASK_HELP + " Its dataset must exist: diffcontact generate TASK."),
     model: str = typer.Option(
         None,
         "--model",
@@ -196,7 +204,7 @@ def evaluate(
     run: str = typer.Argument(..., help="Run directory of a finished `diffcontact train`."),
     split: str = typer.Option("test", "--split", help="Dataset split: test, val or train."),
     data: str = typer.Option("", "--data", help="Dataset root (default: the one the run was trained from)."),
-    task: str = typer.Option("", "--task", help="Refuse a run of any other task than this one."),
+    task: str = typer.Option("", "--task", help="Refuse a run of any other task than this one (name or task file)."),
     frames: int = typer.Option(None, "--frames", help="Frames rolled out (default 70, or the split's if fewer)."),
     pictures: bool = typer.Option(True, help="Also draw the rollout picture and GIF."),
 ) -> None:
@@ -258,7 +266,9 @@ def bench_near_psd(
 
 @bench_app.command("simulate")
 def bench_simulate(
-    tasks: list[str] = typer.Option([], "--task", "-t", help="Tasks (default: the 8 benchmark tasks)."),
+    tasks: list[str] = typer.Option(
+        [], "--task", "-t", help="Tasks, by name or task file (default: the 8 benchmark tasks)."
+    ),
     n: int = typer.Option(1000, "--n", help="Trajectories per task."),
     steps: int = typer.Option(100, "--steps", help="Frames per trajectory."),
     threads: int = typer.Option(2, help="torch.set_num_threads."),

@@ -1,15 +1,18 @@
-"""Task configs: find, load and validate ``configs/tasks/*.toml``.
+"""Task configs: find, load and validate task files (the packaged ones in ``diffcontact/tasks/*.toml``, or any
+file given by its path).
 
 A task file has a ``[task]`` table (name, system builder, dt, frames, dtype, deviations) and one table per
 part of the system (``bodies``, ``contact``, ``potential``, ``walls``, ``init`` and system-specific ones).
 Every value is checked at this boundary; an invalid one raises :class:`ConfigError` naming the field, e.g.
-``ConfigError: contact.cor = 1.3 is not in [0, 1]``.
+``ConfigError: contact.cor = 1.3 is not in [0, 1]``; so does a table or key the task's system does not read
+(:func:`check_keys`: a typo never silently means a default).
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,14 +22,25 @@ import tomllib
 from diffcontact.errors import ConfigError
 
 _ENV_DIR = "DIFFCONTACT_TASKS"
+MAX_FRAMES = 1_000_000  # frames of one trajectory (task.frames): 10^4 s at dt = 0.01
+_SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+
+# Tables every task file may hold, with their keys (None: the keys are checked by their reader, here
+# ``diffcontact train`` against its presets, train/run.py: task_training).  A system adds its own tables
+# (systems/registry.py: register_system).
+COMMON_TABLES: dict[str, tuple[str, ...] | None] = {
+    "task": ("name", "system", "dt", "frames", "dtype", "deviations", "substeps"),
+    "contact": ("mu", "cor", "compensation", "time_of_impact"),
+    "training": None,
+}
 
 
 def tasks_dir() -> Path:
-    """Directory of the task files: ``$DIFFCONTACT_TASKS`` or ``<repo>/configs/tasks``."""
+    """Directory of the packaged task files: ``$DIFFCONTACT_TASKS`` or the package's ``tasks/`` folder."""
     env = os.environ.get(_ENV_DIR)
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2] / "configs" / "tasks"
+    return Path(__file__).resolve().parent / "tasks"
 
 
 def available_tasks() -> list[str]:
@@ -46,6 +60,7 @@ class TaskConfig:
     dtype: str
     raw: dict[str, Any] = field(repr=False)
     source: str = ""
+    ref: str = ""  # how to find the task again: a packaged task's name or a task file's absolute path
 
     def section(self, key: str) -> Section:
         """The table ``key`` (an empty one if absent) wrapped for validated access."""
@@ -113,8 +128,10 @@ class Section:
         hi: float | None = None,
         lo_open: bool = False,
         default: list[float] | None = None,
+        nonempty: bool = False,
     ) -> list[float]:
-        """A list of finite reals, each in range, of an allowed length (an int or a tuple of ints)."""
+        """A list of finite reals, each in range, of an allowed length (an int or a tuple of ints), with at least
+        one value if ``nonempty``."""
         if key not in self.data:
             if default is None:
                 raise ConfigError(f"{self._name(key)} is missing")
@@ -126,6 +143,8 @@ class Section:
             values = [values]
         if not isinstance(values, list):
             raise ConfigError(f"{name} = {values!r} is not a list of numbers")
+        if nonempty and not values:
+            raise ConfigError(f"{name} is empty: at least one value is needed")
         allowed = (length,) if isinstance(length, int) else length
         if allowed is not None and len(values) not in allowed:
             want = " or ".join(str(n) for n in allowed)
@@ -178,37 +197,96 @@ def _check_real(name: str, value: Any, lo: float | None, hi: float | None, lo_op
     return value
 
 
-def load_task(name_or_path: str | Path, overrides: dict[str, dict[str, Any]] | None = None) -> TaskConfig:
-    """Load a task by name (``BP5-e``) or path (``configs/tasks/BP5-e.toml``) and validate ``[task]``.
+def load_task(task: str | Path, overrides: dict[str, dict[str, Any]] | None = None) -> TaskConfig:
+    """The one way from a command's task argument to a validated config: a packaged task's name (``BP5-e``) or
+    the path of a task file (``./my_task.toml``: anything ending in ``.toml`` or holding a path separator).
 
     ``overrides`` maps table -> {key: value} and is applied before validation (used by tests and sweeps).
-    System-specific tables are validated when the System is built (:func:`diffcontact.systems.build_system`).
+    The config's ``ref`` is the name or the file's absolute path, so that the task is found again from any
+    directory.  System-specific tables are validated when the System is built (:func:`diffcontact.build_task`).
     """
-    path = Path(name_or_path)
-    if path.suffix != ".toml":
-        path = tasks_dir() / f"{name_or_path}.toml"
-    if not path.is_file():
-        raise ConfigError(f"unknown task {str(name_or_path)!r}; available tasks: {', '.join(available_tasks())}")
-    text = path.read_text()
+    text_arg = str(task)
+    is_file = isinstance(task, Path) or text_arg.endswith(".toml") or any(s in text_arg for s in ("/", os.sep))
+    if is_file:
+        path = Path(task).expanduser()
+        if not path.is_file():
+            raise ConfigError(f"task file {text_arg!r} does not exist (or is not a file)")
+        ref = str(path.resolve())
+    else:
+        path, ref = tasks_dir() / f"{text_arg}.toml", text_arg
+        if not path.is_file():
+            raise ConfigError(
+                f"unknown task {text_arg!r}; available tasks: {', '.join(available_tasks())} (or give the path of a "
+                "task file, e.g. ./my_task.toml)"
+            )
     try:
+        text = path.read_text()
         raw = tomllib.loads(text)
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path}: cannot read the task file: {err}") from err
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: invalid TOML: {err}") from err
     for table, values in (overrides or {}).items():
         raw.setdefault(table, {}).update(values)
-    return task_from_dict(raw, source=text)
+    return task_from_dict(raw, source=text, ref=ref)
 
 
-def task_from_dict(raw: dict[str, Any], source: str = "") -> TaskConfig:
-    """Validate the ``[task]`` table of an already parsed config."""
+def task_from_dict(raw: dict[str, Any], source: str = "", ref: str = "") -> TaskConfig:
+    """Validate the ``[task]`` table of an already parsed config (``ref``: default the task's name)."""
     task = Section("task", raw.get("task", {}))
+    check_keys({"task": task.data}, COMMON_TABLES)
     name = task.get("name")
     if not isinstance(name, str) or not name:
         raise ConfigError("task.name is missing")
+    if not _SAFE_NAME.fullmatch(name) or name in (".", ".."):
+        raise ConfigError(
+            f"task.name = {name!r} is not a safe folder name (outputs go to OUT/NAME/): use 1 to 100 letters, "
+            "digits, '.', '_' or '-', starting with a letter or digit"
+        )
     system = task.get("system")
     if not isinstance(system, str):
         raise ConfigError("task.system is missing")
     dt = task.number("dt", lo=0.0, lo_open=True)
     frames = task.integer("frames", lo=2)
+    if frames > MAX_FRAMES:
+        raise ConfigError(
+            f"task.frames = {frames} is more than {MAX_FRAMES} (a trajectory of {frames * dt:g} s); simulate long "
+            "motions as several shorter trajectories"
+        )
     dtype = task.choice("dtype", ("float64", "float32"), default="float64")
-    return TaskConfig(name=name, system=system, dt=dt, frames=frames, dtype=dtype, raw=raw, source=source)
+    return TaskConfig(
+        name=name, system=system, dt=dt, frames=frames, dtype=dtype, raw=raw, source=source, ref=ref or name
+    )
+
+
+def check_keys(raw: dict[str, Any], tables: dict[str, tuple[str, ...] | None], system: str = "") -> None:
+    """ConfigError naming the first table of ``raw`` not in ``tables``, or key not among its table's allowed keys
+    (``tables``: table -> allowed keys, None for a table whose keys its reader checks)."""
+    for table, value in raw.items():
+        if table not in tables:
+            of = f" of a {system!r} task" if system else ""
+            raise ConfigError(f"[{table}] is not a table{of}; allowed tables: {', '.join(tables)}")
+        if not isinstance(value, dict):
+            raise ConfigError(f"{table} must be a table, got {value!r}")
+        allowed = tables[table]
+        if allowed is None:
+            continue
+        for key in value:
+            if key not in allowed:
+                raise ConfigError(f"{table}.{key} is not a key of [{table}]; allowed keys: {', '.join(allowed)}")
+
+
+def check_array_size(what: str, values: int, limit: int | None = None) -> None:
+    """ConfigError if ``values`` float64 numbers (e.g. N trajectories x T frames x D coordinates, for x and v)
+    would take more than ``limit`` bytes (default: half the machine's memory); the message gives the estimate."""
+    size = 8 * values
+    if limit is None:
+        try:
+            limit = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+        except (ValueError, OSError, AttributeError):  # (not on this platform: no bound)
+            return
+    if size > limit:
+        raise ConfigError(
+            f"{what} would hold {size / 2**30:.3g} GiB of float64 arrays, more than the {limit / 2**30:.3g} GiB "
+            "allowed (half of this machine's memory): use fewer trajectories or frames"
+        )

@@ -58,8 +58,9 @@ def draw_2d(ax, system: System, x: np.ndarray, hit: bool) -> None:
 
 
 def draw_3d(ax, system: System, x: np.ndarray, hit: bool) -> None:
+    """One frame x (P, 3): the planes, then balls (shape "ball") or the gyroscope's disk (shape "disk3d")."""
     draw = system.drawing
-    (lo, hi) = draw.view[0]
+    lo, hi = min(v[0] for v in draw.view), max(v[1] for v in draw.view)
     for n, c in zip(draw.plane_normal.numpy(), draw.plane_offset.numpy()):
         # a square patch of the plane n·y + c = 0 through its point closest to the origin
         t1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
@@ -69,6 +70,13 @@ def draw_3d(ax, system: System, x: np.ndarray, hit: bool) -> None:
         u, w = np.meshgrid(s, s)
         pts = -c * n + u[..., None] * t1 + w[..., None] * t2
         ax.plot_surface(pts[..., 0], pts[..., 1], pts[..., 2], color="0.6", alpha=0.3)
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(lo, hi)
+    ax.set_zlim(lo, hi)
+    if draw.shape == "ball":  # (marker area in points², about to scale for the figure size of render_gif)
+        size = (200 * draw.radii.numpy() / (hi - lo)) ** 2
+        ax.scatter(x[:, 0], x[:, 1], x[:, 2], s=size, c="tab:red" if hit else "tab:blue", depthshade=True)
+        return
     com, e1, e2, e3 = x[0], x[1] - x[0], x[2] - x[0], x[3] - x[0]
     r = float(draw.radii[0])
     a = np.linspace(0, 2 * np.pi, 60)
@@ -79,9 +87,6 @@ def draw_3d(ax, system: System, x: np.ndarray, hit: bool) -> None:
     ax.plot([anchor[0], com[0]], [anchor[1], com[1]], [anchor[2], com[2]], color="0.3", lw=2)
     tip = com + 0.3 * e3
     ax.plot([com[0], tip[0]], [com[1], tip[1]], [com[2], tip[2]], color="tab:green", lw=1.5)
-    ax.set_xlim(lo, hi)
-    ax.set_ylim(lo, hi)
-    ax.set_zlim(lo, hi)
 
 
 def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | Path, dt: float, every: int = 1) -> None:

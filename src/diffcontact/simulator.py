@@ -141,6 +141,7 @@ def simulate_task(
     import numpy as np
 
     from diffcontact import __version__
+    from diffcontact.config import check_array_size
     from diffcontact.systems import build_task
 
     task = build_task(task_name)
@@ -149,6 +150,8 @@ def simulate_task(
         raise ConfigError(f"n = {n} is not >= 1")
     if frames < 2:
         raise ConfigError(f"steps = {frames} is not >= 2")
+    coords = task.system.n_points * task.system.d
+    check_array_size(f"{n} trajectories x {frames} frames of {task.config.name}", 2 * n * frames * coords)
     sim = simulator_for(task, dynamics=dynamics)
     state = task.sample(n, seed)
     with torch.no_grad():

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from diffcontact.config import check_array_size
 from diffcontact.data.chunking import gather_windows, select_chunks
 from diffcontact.data.noise import add_noise, check_noise, noise_kind
 from diffcontact.data.store import (
@@ -161,6 +162,9 @@ def generate_dataset(
     if not 0.0 < p_collision <= 1.0:
         raise ConfigError(f"p_collision = {p_collision} is not in (0, 1]")
     noise = check_noise(noise)
+    coords = task.system.n_points * task.system.d
+    check_array_size(f"{max(sizes.values())} trajectories x {frames} frames of {task.config.name}",
+                     2 * max(sizes.values()) * frames * coords)  # fmt: skip
     request = _request(task, sizes, seed_map, frames, chunk_len, p_collision, noise)
     folder = Path(out) / task.config.name
     if not force and (folder / "meta.json").is_file():

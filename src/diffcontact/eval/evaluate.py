@@ -56,7 +56,7 @@ def evaluate_run(
         from diffcontact.data.store import load_meta
 
         frames = min(FRAMES, int(load_meta(folder)["request"]["frames"]))
-    ro = rollout_split(loaded.net, folder, split, frames)
+    ro = rollout_split(loaded.net, folder, split, frames, loaded.task.config)
     N, T = ro.x.shape[:2]
     rel = relative_error(ro.x_hat, ro.v_hat, ro.x, ro.v)
     steps, curve_len = min(STEPS, T), min(CURVE, T)

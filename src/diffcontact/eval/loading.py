@@ -48,7 +48,8 @@ class LoadedRun:
 
     @property
     def task_name(self) -> str:
-        return self.config["args"]["task"]
+        """The task's name (its dataset's folder; ``args.task`` may be a task file's path)."""
+        return self.task.config.name
 
     @property
     def model_name(self) -> str:
@@ -93,21 +94,23 @@ def best_checkpoint(run: str | Path) -> Path:
 def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
     """Load a run's best model through the builder registered for its model name.
 
-    ``task``: the task the caller expects; a run of another task is a ConfigError, as are a missing config, an
-    unregistered model, and a missing or unreadable checkpoint.
+    ``task``: the task the caller expects (a packaged task's name or a task file's path, compared by task name); a
+    run of another task is a ConfigError, as are a missing config, an unregistered model, and a missing or
+    unreadable checkpoint.
     """
+    from diffcontact.config import load_task
     from diffcontact.systems.registry import build_task
 
     run = Path(run)
     config = read_config(run)
     name, model = config["args"]["task"], config["args"]["model"]
-    if task is not None and name != task:
-        raise ConfigError(f"{run} is a run of task {name!r}, not {task!r}")
+    built = build_task(name)
+    if task is not None and built.config.name != load_task(task).name:
+        raise ConfigError(f"{run} is a run of task {built.config.name!r}, not {task!r}")
     builder = _BUILDERS.get(model)
     if builder is None:
         raise ConfigError(f"{run}: model {model!r} has no registered loader; known: {registered_models()}")
     checkpoint = best_checkpoint(run)
-    built = build_task(name)
     net = builder(run, config, checkpoint, built)
     return LoadedRun(run_dir=run, config=config, checkpoint=checkpoint, task=built, net=net.eval())
 

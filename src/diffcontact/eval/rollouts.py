@@ -25,15 +25,16 @@ class Rollouts:
     dt: float
 
 
-def ground_truth(folder: str | Path, split: str = "test", frames: int | None = None):
+def ground_truth(folder: str | Path, split: str = "test", frames: int | None = None, config=None):
     """The split's trajectories, which the dataset records as simulated with the exact contact model (CM) in float64
     from their initial states (the ground truth for every model, whatever its own contact model); x, v (N, T, P, d),
-    contact (N, T), dt.  DatasetError if the data were made otherwise or are shorter than ``frames``."""
+    contact (N, T), dt.  DatasetError if the data were made otherwise, from another config than ``config`` (a
+    TaskConfig; default: the packaged task of the dataset's name) or are shorter than ``frames``."""
     request = load_meta(folder)["request"]
     made = {k: request.get(k) for k in ("contact_model", "dtype", "dynamics")}
     if made != {"contact_model": "CM", "dtype": "float64", "dynamics": "lagrangian"}:
         raise DatasetError(f"{folder}: the ground truth must be CM in float64 (Lagrangian), the data record {made}")
-    data = load_split(folder, split)
+    data = load_split(folder, split, config)
     T = data.x.shape[1]
     frames = T if frames is None else frames
     if not 2 <= frames <= T:
@@ -53,9 +54,11 @@ def predict(net: nn.Module, x0: torch.Tensor, v0: torch.Tensor, frames: int, bat
     return torch.cat(xs), torch.cat(vs)
 
 
-def rollout_split(net: nn.Module, folder: str | Path, split: str = "test", frames: int | None = None) -> Rollouts:
+def rollout_split(
+    net: nn.Module, folder: str | Path, split: str = "test", frames: int | None = None, config=None
+) -> Rollouts:
     """Ground truth (``ground_truth``) and the model's prediction from the same initial states."""
-    x, v, contact, dt = ground_truth(folder, split, frames)
+    x, v, contact, dt = ground_truth(folder, split, frames, config)
     x_hat, v_hat = predict(net, x[:, 0], v[:, 0], x.shape[1])
     if x_hat.shape != x.shape:
         raise ValueError(f"the model predicted {tuple(x_hat.shape)}, the truth is {tuple(x.shape)} (N, T, P, d)")

@@ -1,7 +1,9 @@
-"""Bouncing point masses (BP), bouncing disks (BD) and the billiards table: bodies in a box of walls.
+"""Bouncing point masses (BP), bouncing disks (BD) and the billiards table: bodies in a box of walls, in 2-D, or
+balls in a box of planes in 3-D (``bodies.dim = 3``).
 
 Contact slots (spec A.1): the n(n−1)/2 pairs first, in lexicographic order, then ball–wall contacts at
-n(n−1)/2 + n_walls·ball + wall. Disks are extended bodies (3 points, moments r²/4 per unit mass).
+n(n−1)/2 + n_walls·ball + wall. Disks are extended bodies (3 points, moments r²/4 per unit mass). Gravity acts
+along −y in 2-D and along −z in 3-D.
 """
 
 from __future__ import annotations
@@ -29,19 +31,34 @@ from diffcontact.systems.common import (
 )
 
 BOX = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 1.0], [0.0, -1.0, 1.0]]
+BOX3 = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]
+BOX3 += [[-1.0, 0.0, 0.0, 1.0], [0.0, -1.0, 0.0, 1.0], [0.0, 0.0, -1.0, 1.0]]  # the unit cube
+TABLES = {
+    "bodies": ("kind", "dim", "masses", "radii"),
+    "walls": ("lines", "planes"),
+    "potential": ("gravity",),
+    "init": ("kind", "box", "velocity_std", "angular_velocity_std", "cue_position", "cue_velocity", "goal"),
+}
 
 
 def build_bouncing(cfg: TaskConfig) -> Task:
-    """BP / BD / billiards from ``[bodies]`` (kind, masses, radii), ``[walls]``, ``[potential]``, ``[contact]``."""
+    """BP / BD / billiards from ``[bodies]`` (kind, dim, masses, radii), ``[walls]`` (``lines`` [a, b, c] in 2-D,
+    ``planes`` [a, b, c, e] in 3-D, free where a x + b y (+ c z) + last >= 0), ``[potential]``, ``[contact]``."""
     bodies = cfg.section("bodies")
     kind = bodies.choice("kind", ("point", "disk"))
-    masses = bodies.numbers("masses", lo=0.0, lo_open=True)
+    d = bodies.integer("dim", 2, lo=2)
+    if d not in (2, 3) or (d == 3 and kind != "point"):
+        raise ConfigError(f"bodies.dim = {d} is not 2 (points or disks) or 3 (points: balls)")
+    masses = bodies.numbers("masses", lo=0.0, lo_open=True, nonempty=True)
     n = len(masses)
     radii = bodies.numbers("radii", lo=0.0, lo_open=True)
     check_lengths(bodies, "radii", radii, n)
-    d = 2
     q = 1 if kind == "point" else d + 1
-    wall_n, wall_c = planes(cfg.section("walls"), "lines", d, default=BOX)
+    walls = cfg.section("walls")
+    key, other = ("lines", "planes") if d == 2 else ("planes", "lines")
+    if walls.has(other):
+        raise ConfigError(f"walls.{other} is for {5 - d}-D bodies; in {d}-D give walls.{key} ({d + 1} numbers a row)")
+    wall_n, wall_c = planes(walls, key, d, default=BOX if d == 2 else BOX3)
     n_walls = wall_n.shape[0]
     pi, pj = pairs(n)
     n_pairs = pi.numel()
@@ -74,23 +91,28 @@ def build_bouncing(cfg: TaskConfig) -> Task:
             plane_normal=wall_n,
             plane_offset=wall_c,
             shape="ball" if kind == "point" else "disk2d",
-            view=_view(cfg),
+            view=_view(cfg, d),
         ),
     )
     pot = cfg.section("potential")
     g = pot.number("gravity", 0.0, lo=0.0)
-    potential = SumPotential(Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), m, q)) if g else SumPotential()
+    potential = SumPotential(Gravity(g, torch.eye(d, dtype=F64)[d - 1], m, q)) if g else SumPotential()
     params = Params(Inertia(m, moments), potential, mu, e)
     init = cfg.section("init")
     if init.choice("kind", ("uniform", "billiards"), default="uniform") == "billiards":
+        if d != 2:
+            raise ConfigError("init.kind = 'billiards' is a 2-D layout (bodies.dim = 2)")
         sampler = _billiards_sampler(cfg, n, r)
     else:
         sampler = _box_sampler(cfg, system, kind)
     return Task(cfg, system, params, sampler)
 
 
-def _view(cfg: TaskConfig) -> tuple[tuple[float, float], ...]:
-    box = cfg.section("init").matrix("box", cols=2, default=[[0.0, 1.0], [0.0, 1.0]])
+def _view(cfg: TaskConfig, d: int) -> tuple[tuple[float, float], ...]:
+    """``init.box``: (lo, hi) per axis, default the unit square or cube."""
+    box = cfg.section("init").matrix("box", cols=2, default=[[0.0, 1.0]] * d)
+    if len(box) != d or any(lo >= hi for lo, hi in box):
+        raise ConfigError(f"init.box = {box} is not {d} rows [lo, hi] with lo < hi")
     return tuple((lo, hi) for lo, hi in box)
 
 
@@ -111,22 +133,22 @@ def disk_points(
 
 def _box_sampler(cfg: TaskConfig, system: System, kind: str):
     init = cfg.section("init")
-    (x0, x1), (y0, y1) = _view(cfg)
+    d = system.d
+    lo, hi = torch.tensor(_view(cfg, d), dtype=F64).unbind(1)
     v_std = init.number("velocity_std", 1.0, lo=0.0)
     w_std = init.number("angular_velocity_std", 0.5, lo=0.0)
     n = system.n_bodies
 
     def sample(count: int, gen: torch.Generator, dtype: torch.dtype) -> State:
         def draw(k: int) -> State:
-            u = torch.rand(k, n, 2, generator=gen, dtype=F64)
-            centre = torch.stack([x0 + (x1 - x0) * u[..., 0], y0 + (y1 - y0) * u[..., 1]], -1)
+            centre = lo + (hi - lo) * torch.rand(k, n, d, generator=gen, dtype=F64)
             if kind == "point":
                 return State(centre, torch.zeros_like(centre))
             theta = 2 * math.pi * torch.rand(k, n, generator=gen, dtype=F64)
             return State(*disk_points(centre, theta, torch.zeros_like(centre), torch.zeros_like(theta)))
 
         state = rejection_sample(draw, system.detector.gaps, count, cfg.name)
-        vel = v_std * torch.randn(count, n, 2, generator=gen, dtype=F64)
+        vel = v_std * torch.randn(count, n, d, generator=gen, dtype=F64)
         if kind == "point":
             return State(state.x.to(dtype), vel.to(dtype))
         omega = w_std * torch.randn(count, n, generator=gen, dtype=F64)

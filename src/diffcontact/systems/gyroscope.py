@@ -47,6 +47,14 @@ def hat(w: torch.Tensor) -> torch.Tensor:
     )
 
 
+TABLES = {
+    "body": ("mass", "moments", "com", "disk_radius", "disk_height"),
+    "walls": ("planes",),
+    "potential": ("gravity",),
+    "init": ("angle_max", "precession_rate_max", "nutation_rate_max", "spin_mean", "spin_std"),
+}
+
+
 def build_gyroscope(cfg: TaskConfig) -> Task:
     """Gyroscope from ``[body]`` (mass, moments, com, disk_radius, disk_height), ``[walls]``, ``[potential]``."""
     body = cfg.section("body")

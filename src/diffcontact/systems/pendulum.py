@@ -18,11 +18,19 @@ from diffcontact.state import Inertia, Params, State
 from diffcontact.systems.base import Drawing, System, Task
 from diffcontact.systems.common import F64, check_lengths, coefficients, make_constraints, planes, rejection_sample
 
+TABLES = {
+    "bodies": ("masses", "radii"),
+    "pendulum": ("lengths", "pivot"),
+    "walls": ("lines",),
+    "potential": ("gravity",),
+    "init": ("angle_range", "angular_velocity_std"),
+}
+
 
 def build_chain_pendulum(cfg: TaskConfig) -> Task:
     """CP from ``[bodies]`` (masses, radii), ``[pendulum]`` (lengths, pivot), ``[walls]``, ``[potential]``."""
     bodies = cfg.section("bodies")
-    masses = bodies.numbers("masses", lo=0.0, lo_open=True)
+    masses = bodies.numbers("masses", lo=0.0, lo_open=True, nonempty=True)
     n = len(masses)
     radii = bodies.numbers("radii", lo=0.0, lo_open=True)
     check_lengths(bodies, "radii", radii, n)

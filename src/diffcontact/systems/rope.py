@@ -21,6 +21,12 @@ from diffcontact.systems.base import Drawing, System, Task
 from diffcontact.systems.common import F64, coefficients, make_constraints, rejection_sample
 from diffcontact.systems.pendulum import chain_points
 
+TABLES = {
+    "rope": ("nodes", "mass", "rest_length", "spring_k", "bend_limit", "stretch_min", "stretch_max"),
+    "potential": ("gravity",),
+    "init": ("angle_range", "bend_spread", "angular_velocity_std"),
+}
+
 
 def build_rope(cfg: TaskConfig) -> Task:
     """Rope from ``[rope]`` (nodes, mass, rest_length, spring_k, bend_limit, stretch_min, stretch_max)."""

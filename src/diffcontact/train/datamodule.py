@@ -8,6 +8,7 @@ import lightning.pytorch as pl
 import torch
 from torch.utils.data import DataLoader
 
+from diffcontact.config import load_task
 from diffcontact.data.dataset import ChunkDataset, PairDataset, TrajectoryDataset
 from diffcontact.data.store import SPLITS, Split, load_split
 from diffcontact.errors import ConfigError
@@ -36,7 +37,8 @@ class ContactDataModule(pl.LightningDataModule):
             raise ConfigError(f"mode = {mode!r} is not one of {list(MODES)}")
         if batch_size < 1:
             raise ConfigError(f"batch_size = {batch_size} is not >= 1")
-        self.folder = Path(root) / task
+        self.config = load_task(task)  # (a packaged task's name or a task file's path: its data are in root/NAME)
+        self.folder = Path(root) / self.config.name
         self.batch_size, self.mode, self.dtype = batch_size, mode, dtype
         self.seed, self.num_workers = seed, num_workers
         self.splits: dict[str, Split] = {}
@@ -45,7 +47,7 @@ class ContactDataModule(pl.LightningDataModule):
         """Load and verify (checksum, config) every split once."""
         for name in SPLITS:
             if name not in self.splits:
-                self.splits[name] = load_split(self.folder, name, dtype=self.dtype)
+                self.splits[name] = load_split(self.folder, name, self.config, dtype=self.dtype)
 
     def _dataset(self, name: str):
         self.setup()

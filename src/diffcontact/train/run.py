@@ -12,6 +12,7 @@ import lightning.pytorch as pl
 import torch
 
 import diffcontact
+from diffcontact.config import load_task
 from diffcontact.data.store import atomic_write
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
@@ -95,8 +96,6 @@ PRESETS = {
 def task_training(task: str | Path) -> dict:
     """The ``[training]`` table of a task file: the settings of the default preset that differ for this task
     (for example ``mu_coef_lr``), each checked against the preset's known settings and their domains."""
-    from diffcontact.config import load_task
-
     table = load_task(task).section("training")
     known = PRESETS["default"]
     settings = {}
@@ -261,7 +260,13 @@ def train_run(
     schedule); the result is the same as a run that was not interrupted.
     Returns the learned summary.
     """
-    run = Path(out) if out else Path("runs") / task / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
+    config = load_task(task)  # (a packaged task's name or a task file's path, recorded as found from anywhere)
+    task = config.ref
+    run = (
+        Path(out)
+        if out
+        else Path("runs") / config.name / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
+    )
     ckpt_dir = run / "checkpoints"
     last = ckpt_dir / "last.ckpt"
     if resume:
@@ -398,7 +403,8 @@ def summarize_run(run: str | Path) -> dict:
         raise ConfigError(f"{run} is not a finished training run (learned.json, config.json): {err}") from err
     best = best_checkpoint(run)  # (in the run's own folder if it was moved)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
-    train = load_split(Path(args["data_root"]) / args["task"], "train")
+    config = chosen.task.config
+    train = load_split(Path(args["data_root"]) / config.name, "train", config)
     fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
     summary = {**fresh, **kept}
