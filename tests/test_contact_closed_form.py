@@ -33,7 +33,7 @@ def contact(task, x, v, reg=0.0):
     sim = simulator_for(task, reg=reg)
     x = torch.as_tensor(x, dtype=torch.float64)[None]
     v = torch.as_tensor(v, dtype=torch.float64)[None]
-    v1, hit = sim.contact_model(task.system.constraints, task.system.detector, task.params, x, v, task.dt)
+    v1, hit = sim.contact_model(task.system, task.params, x, v, task.dt)
     return v1[0], bool(hit[0])
 
 

@@ -54,7 +54,7 @@ def simulate(
     dynamics: str = typer.Option("lagrangian", help="lagrangian (x, v) or hamiltonian (x, p)."),
 ) -> None:
     """Simulate a task with its true parameters (exact contact model CM, float64)."""
-    from diffcontact.simulator import simulate_task
+    from diffcontact.simulate import simulate_task
 
     meta = simulate_task(task, n, steps or None, seed, out, gif or None, dynamics)
     typer.echo(f"wrote {out}: {meta['n']} trajectories x {meta['frames']} frames of {meta['task']}")

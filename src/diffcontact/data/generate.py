@@ -3,7 +3,6 @@ one 5-frame chunk per trajectory, optional noise, stored with metadata and check
 
 from __future__ import annotations
 
-import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -25,6 +24,7 @@ from diffcontact.data.store import (
     save_arrays,
     save_meta,
     verify_dataset,
+    versions,
 )
 from diffcontact.errors import ConfigError, DatasetError
 from diffcontact.simulator import simulator_for
@@ -175,18 +175,11 @@ def generate_dataset(
             pass  # invalid or different: regenerate
     remove_stale(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    from diffcontact import __version__
-
     meta: dict[str, Any] = {
         "format": FORMAT,
         "request": request,
         "config_text": task.config.source,
-        "versions": {
-            "diffcontact": __version__,
-            "torch": torch.__version__,
-            "numpy": np.__version__,
-            "python": platform.python_version(),
-        },
+        "versions": versions(),
         "splits": {},
     }
     for split in SPLITS:
