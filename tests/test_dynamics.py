@@ -221,3 +221,25 @@ def test_effective_inverse_inertia_equals_paper_eq_8_and_is_psd_for_extreme_mome
             evals = torch.linalg.eigvalsh(A32.double())
             ref = A32.diagonal(dim1=-2, dim2=-1).amax(-1).double()
             assert (evals[:, 0] >= -1e-6 * ref).all(), (evals[:, 0] / ref).min()
+
+
+@pytest.mark.parametrize("name", ["BD1", "CP3", "Gyro", "Rope"])
+def test_replacing_the_inertia_moves_gravity_with_it(name):
+    """The potential reads the masses of the Params holding it: with every body's mass scaled by its own s_b and
+    nothing else replaced, the force changes by the gravity on the added mass, (s_b − 1) m_b g per body (the
+    centre point carries a body's gravity), and no other term of the potential (the rope's springs) changes."""
+    from diffcontact.dynamics.lagrangian import potential_force
+    from diffcontact.state import Inertia
+
+    task = build_task(name)
+    p, sys = task.params, task.system
+    scale = torch.linspace(0.5, 2.0, sys.n_bodies, dtype=torch.float64)
+    heavier = p.replace(inertia=Inertia(p.inertia.masses * scale, p.inertia.moments))
+    x = task.sample(3, seed=2).x
+    g = task.config.section("potential").number("gravity", 9.81)
+    down = -torch.eye(sys.d, dtype=torch.float64)[-1]
+    added = torch.zeros(sys.n_points, sys.d, dtype=torch.float64)
+    added[:: sys.points_per_body] = ((scale - 1) * p.inertia.masses * g)[:, None] * down
+    assert added.abs().max() > 0.1
+    change = potential_force(heavier, x) - potential_force(p, x)
+    torch.testing.assert_close(change, added.expand_as(x), rtol=0.0, atol=1e-14)  # (measured: 2e-16)

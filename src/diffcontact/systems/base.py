@@ -66,7 +66,7 @@ class System:
 
     def energy(self, params: Params, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Total energy ½vᵀMv + V(x): x, v (B, P, d) -> (B,) in J."""
-        return kinetic_energy(params.inertia, v) + params.potential(x)
+        return kinetic_energy(params.inertia, v) + params.potential_energy(x)
 
 
 Sampler = Callable[[int, torch.Generator, torch.dtype], State]

@@ -66,7 +66,7 @@ def build_chain_pendulum(cfg: TaskConfig) -> Task:
     g = cfg.section("potential").number("gravity", 9.81, lo=0.0)
     params = Params(
         Inertia(m, torch.zeros(n, 0, dtype=F64)),
-        SumPotential(Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), m, 1)),
+        SumPotential(Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), 1)),
         mu,
         e,
     )
