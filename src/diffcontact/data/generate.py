@@ -93,7 +93,7 @@ def make_split(
     if noise > 0:
         gen = torch.Generator().manual_seed(child_seed(seed, _NOISE_STREAM))
         P, d = x.shape[2:]
-        nx, nv = add_noise(task.system.constraints, cx.reshape(-1, P, d), cv.reshape(-1, P, d), noise, gen)
+        nx, nv = add_noise(task.system, cx.reshape(-1, P, d), cv.reshape(-1, P, d), noise, gen)
         cx, cv = nx.reshape(cx.shape), nv.reshape(cv.shape)
     return {
         "x": x.numpy(),
@@ -118,7 +118,7 @@ def _request(task: Task, sizes, seeds, frames, chunk_len, p_collision, noise) ->
         "chunk_len": chunk_len,
         "p_collision": p_collision,
         "noise": noise,
-        "noise_kind": noise_kind(task.system.constraints) if noise > 0 else None,
+        "noise_kind": noise_kind(task.system) if noise > 0 else None,
         "dynamics": "lagrangian",
         "contact_model": "CM",
         "dtype": task.config.dtype,
