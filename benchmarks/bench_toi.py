@@ -59,7 +59,7 @@ def measure(name: str, n: int, frames: int, substeps: int, seed: int, repeats: i
         flat_x, flat_v = x.flatten(0, 1), v.flatten(0, 1)
         with torch.no_grad():
             E = task.system.energy(task.params, flat_x, flat_v).reshape(n, frames)
-            K = (E - task.params.potential(flat_x).reshape(n, frames)).amax(1, keepdim=True)
+            K = (E - task.params.potential_energy(flat_x).reshape(n, frames)).amax(1, keepdim=True)
             gaps = task.system.detector.gaps(flat_x)
         rel = (E - E[:, :1]) / K
         rows.append(

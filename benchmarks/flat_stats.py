@@ -23,7 +23,6 @@ from diffcontact.train.module import ContactLightningModule
 def replay(module: ContactLightningModule, data: ContactDataModule) -> dict:
     stats = {"problems": 0, "flat": 0, "consistent": 0, "ratio_max_consistent": 0.0, "ratio_min_other": None}
     ratios = []
-    statuses = {s.name: 0 for s in Status}
     analyse = flat._analyse
 
     def recording(A, q, used, tol, mu=None):
@@ -40,29 +39,17 @@ def replay(module: ContactLightningModule, data: ContactDataModule) -> dict:
             stats["ratio_min_other"] = low if stats["ratio_min_other"] is None else min(stats["ratio_min_other"], low)
         return out
 
-    contact = module.net.simulator.contact_model
-    solve = contact.solver
-    assign = object.__setattr__  # (the contact model is a frozen dataclass)
-
-    def counting(A, q, mu, lower=None, active=None, **kw):
-        from diffcontact.solver import solve_cone_qp
-
-        f, info = solve_cone_qp(A, q, mu, lower, active, on_failure="count", return_info=True)
-        stats["problems"] += len(info.status)
-        for code in info.status.tolist():
-            statuses[Status(code).name] += 1
-        return f
-
+    solver = module.net.simulator.contact_model.solver  # (the module's, which counts and continues on failure)
+    solver.reset()
     flat._analyse = recording
-    assign(contact, "solver", counting)
     try:
         with torch.no_grad():
             for batch in data.train_dataloader():
                 module.loss(batch)
     finally:
         flat._analyse = analyse
-        assign(contact, "solver", solve)
-    stats["status"] = statuses
+    stats["problems"] = solver.problems
+    stats["status"] = {s.name: int(solver.counts[s]) for s in Status}
     if ratios:
         r = torch.cat(ratios)
         stats["flat_part_of_q"] = {f"<= {t:g}": int((r <= t).sum()) for t in (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1)}

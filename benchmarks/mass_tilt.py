@@ -24,15 +24,13 @@ from loss_landscape import chunk_loss  # noqa: E402
 
 
 def with_masses(params, masses: torch.Tensor, gravity_follows: bool):
-    """Params with ``masses``; gravity terms of the potential rebuilt on them if ``gravity_follows``."""
-    from diffcontact.dynamics.potentials import Gravity, SumPotential
+    """Params with ``masses``; the potential's gravity on them if ``gravity_follows`` (it reads the Params' masses),
+    else on the original masses."""
     from diffcontact.state import Inertia
 
-    pot = params.potential
-    if gravity_follows:
-        terms = pot.terms if isinstance(pot, SumPotential) else (pot,)
-        terms = [Gravity(t.g, t.up, masses, t.stride) if isinstance(t, Gravity) else t for t in terms]
-        pot = SumPotential(*terms)
+    pot, m0 = params.potential, params.inertia.masses
+    if not gravity_follows:
+        pot = lambda x, _masses: params.potential(x, m0)  # noqa: E731
     return params.replace(inertia=Inertia(masses, params.inertia.moments), potential=pot)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+import pytest
 import torch
 
 # Named tolerances of the solver tests (relative to the scale max(1, ‖f‖∞) of the solution).
@@ -32,9 +33,16 @@ def random_instance(
     return A, q, mu, lower
 
 
+def _cvxpy():
+    """cvxpy with the Clarabel solver, or skip the calling test."""
+    pytest.importorskip("clarabel")
+    return pytest.importorskip("cvxpy")
+
+
 def clarabel_solve(A: np.ndarray, q: np.ndarray, mu: np.ndarray, lower: np.ndarray, d: int):
-    """Solve one instance with Clarabel (through cvxpy) at CLARABEL_TOL; returns (f, objective)."""
-    import cvxpy as cp
+    """Solve one instance with Clarabel (through cvxpy) at CLARABEL_TOL; returns (f, objective).  The calling test
+    is skipped where cvxpy or Clarabel (the ``reference`` extra) is not installed."""
+    cp = _cvxpy()
 
     n = A.shape[0]
     K = n // d
@@ -108,8 +116,8 @@ def _project(x, mu, lower, d):
 def clarabel_min_norm(A: np.ndarray, q: np.ndarray, mu: np.ndarray, lower: np.ndarray, d: int, f_opt: np.ndarray):
     """The minimum-norm minimiser of a problem with a singular PSD A, in two stages: every minimiser has the
     range part of ``f_opt`` (a minimiser, from :func:`clarabel_solve`), so minimise ‖f‖ over the cones with that
-    range part fixed.  Returns f."""
-    import cvxpy as cp
+    range part fixed.  Returns f (the calling test is skipped without cvxpy and Clarabel)."""
+    cp = _cvxpy()
 
     n = A.shape[0]
     K = n // d

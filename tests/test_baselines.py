@@ -115,7 +115,7 @@ def test_in_cp_clnn_adds_the_network_to_the_clnn_and_is_given_minus_grad_v():
     x1, v1 = net.simulator.flow(net.params(), s.x, s.v, net.dt)
     assert torch.equal(xn, x1) and torch.allclose(vn, v1 + seen["out"], atol=1e-14)
     force = seen["args"][3]
-    assert torch.allclose(force, potential_force(net.params.potential, x1), atol=1e-14)
+    assert torch.allclose(force, potential_force(net.params(), x1), atol=1e-14)
     assert force.abs().max() > 0
     _zero_last(net.net.object)
     assert torch.allclose(net.step(s.x, s.v)[1], v1, atol=1e-14)

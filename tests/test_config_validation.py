@@ -13,7 +13,7 @@ import diffcontact as dc
 from diffcontact.config import MAX_FRAMES, check_array_size, task_from_dict, tasks_dir
 from diffcontact.data.generate import generate_dataset
 from diffcontact.errors import ConfigError
-from diffcontact.simulator import simulate_task
+from diffcontact.simulate import simulate_task
 
 
 def _write(tmp_path: Path, base: str, edit) -> Path:

@@ -13,7 +13,7 @@ from diffcontact.data.noise import add_noise, noise_kind
 from diffcontact.errors import ConfigError
 from diffcontact.systems import build_task
 
-CONSTRAINT_TOL = 1e-10  # |Φ| after noise, in m² (distances) and m (joints)
+CONSTRAINT_TOL = 1e-12  # |Φ|, |J_E v| after noise (m², m, m/s): the projection's stopping rule (measured: 1e-14)
 STD = 0.05
 
 
@@ -29,8 +29,8 @@ def _states(name: str, n: int = 400):
 def test_noise_keeps_the_constraints(name, kind):
     task, x, v = _states(name)
     cons = task.system.constraints
-    assert noise_kind(cons) == kind
-    nx, nv = add_noise(cons, x, v, STD, torch.Generator().manual_seed(0))
+    assert noise_kind(task.system) == kind
+    nx, nv = add_noise(task.system, x, v, STD, torch.Generator().manual_seed(0))
     if cons.count:
         assert float(cons.phi(nx).abs().max()) < CONSTRAINT_TOL
         Jv = cons.jac(nx) @ nv.reshape(nx.shape[0], -1, 1)
@@ -45,7 +45,7 @@ def test_noise_keeps_the_constraints(name, kind):
 def test_chain_noise_is_gaussian_in_angle_space():
     task, x, v = _states("CP3")
     cons = task.system.constraints
-    nx, _ = add_noise(cons, x, v, STD, torch.Generator().manual_seed(1))
+    nx, _ = add_noise(task.system, x, v, STD, torch.Generator().manual_seed(1))
 
     def angles(p):
         prev = torch.cat([cons.anchors.to(p)[0].expand(p.shape[0], 1, 2), p[:, :-1]], 1)
@@ -58,12 +58,12 @@ def test_chain_noise_is_gaussian_in_angle_space():
 
 def test_zero_noise_is_an_exact_copy_and_negative_noise_an_error():
     task, x, v = _states("BD5", 4)
-    nx, nv = add_noise(task.system.constraints, x, v, 0.0, torch.Generator())
+    nx, nv = add_noise(task.system, x, v, 0.0, torch.Generator())
     assert torch.equal(nx, x) and torch.equal(nv, v)
     with pytest.raises(ConfigError, match="noise = -1 is not a finite number >= 0"):
-        add_noise(task.system.constraints, x, v, -1, torch.Generator())
+        add_noise(task.system, x, v, -1, torch.Generator())
     with pytest.raises(ConfigError, match="noise = 'a' is not a number"):
-        add_noise(task.system.constraints, x, v, "a", torch.Generator())
+        add_noise(task.system, x, v, "a", torch.Generator())
 
 
 def test_generated_noise_is_on_chunks_only_and_recorded(tmp_path):

@@ -117,7 +117,7 @@ def test_rollout_gradients_match_finite_differences(case):
     base = task.params
 
     def final(mu, e, masses, moments):
-        pot = SumPotential(Gravity(9.81, torch.tensor([0.0, 1.0], dtype=torch.float64), masses, q))
+        pot = SumPotential(Gravity(9.81, torch.tensor([0.0, 1.0], dtype=torch.float64), q))
         params = Params(Inertia(masses, moments), pot, mu, e)
         x, v, hit = sim.rollout(s, params, task.dt, steps)
         return x[:, -1], v[:, -1], hit

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from diffcontact.cli import app
 from diffcontact.errors import ConfigError
-from diffcontact.simulator import simulate_task
+from diffcontact.simulate import simulate_task
 
 
 def test_simulate_writes_npz_and_gif(tmp_path):

@@ -140,17 +140,17 @@ def test_ball_in_a_corner_with_friction_gets_the_minimum_norm_impulse():
     pytest.importorskip("cvxpy")
     from solver_oracle import clarabel_min_norm, clarabel_solve
 
-    from diffcontact.solver import solve_cone_qp
+    from diffcontact.solver import ContactSolver, solve_cone_qp
 
     calls = []
 
     def recording(A, q, mu, lower=None, active=None, **kw):
-        f = solve_cone_qp(A, q, mu, lower, active, **kw)
+        f, info = solve_cone_qp(A, q, mu, lower, active, **kw)
         calls.append((A, q, mu, lower, f))
-        return f
+        return f, info
 
     task = balls(walls=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)), mu=0.5, cor=0.5)
-    sim = simulator_for(task, solver=recording, time_of_impact=True)
+    sim = simulator_for(task, solver=ContactSolver(backend=recording), time_of_impact=True)
     with torch.no_grad():
         sim.step(
             State(torch.tensor([[[0.105, 0.104]]], dtype=F64), torch.tensor([[[-1.0, -0.8]]], dtype=F64)),

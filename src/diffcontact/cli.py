@@ -58,7 +58,7 @@ def simulate(
 ) -> None:
     """Simulate a task with its true parameters (exact contact model CM, float64)."""
     from diffcontact.errors import ConfigError
-    from diffcontact.simulator import simulate_task
+    from diffcontact.simulate import simulate_task
 
     try:
         meta = simulate_task(task, n, steps or None, seed, out, gif or None, dynamics)

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from diffcontact.data.store import save_gif
 from diffcontact.systems.base import System
 
 
@@ -91,7 +90,6 @@ def draw_3d(ax, system: System, x: np.ndarray, hit: bool) -> None:
 
 def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | Path, dt: float, every: int = 1) -> None:
     """Write a GIF of one trajectory: x (T, P, d) positions, contact (T,) flags; frame time dt in s."""
-    import imageio.v2 as imageio
     import matplotlib
 
     matplotlib.use("Agg")
@@ -118,12 +116,4 @@ def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | P
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
     plt.close(fig)
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(suffix=".gif", dir=path.parent)
-    os.close(fd)
-    try:
-        imageio.mimsave(tmp, frames, duration=max(dt * every, 0.02), loop=0)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    save_gif(path, frames, max(dt * every, 0.02))

@@ -14,12 +14,13 @@ from functools import partial
 
 import torch
 
-from diffcontact.contact.impulse import ContactModel
+from diffcontact.contact.impulse import COMPENSATION, ContactModel
 from diffcontact.contact.toi import MAX_EVENTS, toi_step
 from diffcontact.dynamics.hamiltonian import hamiltonian_field, momentum, velocity
 from diffcontact.dynamics.lagrangian import lagrangian_field
 from diffcontact.errors import ConfigError
 from diffcontact.integrate import rk4_step
+from diffcontact.solver.contact_solver import ContactSolver
 from diffcontact.state import Params, State
 from diffcontact.systems.base import System
 
@@ -82,9 +83,9 @@ class Simulator:
         sys = self.system
         if self.time_of_impact:
             flow = partial(self.flow, params)
-            return toi_step(flow, self.contact_model, sys.constraints, sys.detector, params, x, v, h, self.max_events)
+            return toi_step(flow, self.contact_model, sys, params, x, v, h, self.max_events)
         x1, v1 = self.flow(params, x, v, h)
-        v1, hit = self.contact_model(sys.constraints, sys.detector, params, x1, v1, h)
+        v1, hit = self.contact_model(sys, params, x1, v1, h)
         return x1, v1, hit
 
     def rollout(
@@ -109,89 +110,16 @@ def simulator_for(
     task,
     dynamics: str = "lagrangian",
     reg: float = 0.0,
-    solver=None,
-    on_failure: str = "raise",
+    solver: ContactSolver | None = None,
     time_of_impact: bool | None = None,
     substeps: int | None = None,
 ) -> Simulator:
-    """The Simulator of a Task: its contact compensation from ``contact.compensation`` (default 1/8); the
-    time-stepping scheme from ``contact.time_of_impact`` and ``task.substeps`` unless given here."""
-    comp = task.config.section("contact").number("compensation", 0.125, lo=0.0, hi=1.0)
+    """The Simulator of a Task (ground truth and learned models alike): its contact model (CM, or CMr with
+    ``reg`` > 0 in 1/kg) with the compensation ``contact.compensation`` (default ``COMPENSATION``) and ``solver``
+    (default: a :class:`ContactSolver` that raises on failure); the time-stepping scheme from
+    ``contact.time_of_impact`` and ``task.substeps`` unless given here."""
+    comp = task.config.section("contact").number("compensation", COMPENSATION, lo=0.0, hi=1.0)
     if reg < 0:
         raise ConfigError(f"reg = {reg:g} is not >= 0")
-    model = ContactModel(reg=reg, compensation=comp, solver=solver, on_failure=on_failure)
+    model = ContactModel(reg=reg, compensation=comp, solver=solver or ContactSolver())
     return Simulator(task.system, dynamics, model, time_of_impact=time_of_impact, substeps=substeps)
-
-
-def simulate_task(
-    task_name: str, n: int, steps: int | None, seed: int, out: str, gif: str | None = None, dynamics: str = "lagrangian"
-) -> dict:
-    """Simulate ``n`` trajectories of a task with its true Params (CM, float64) and write ``out`` (.npz).
-
-    The file holds x, v (N, T, P, d), t (T,) in s, energy (N, T) in J, contact (N, T) bool, the task file's
-    text (``config``) and ``meta`` (JSON: versions, seed, dt, command arguments). It is written to a temporary
-    file and renamed. ``steps`` is the number of frames T (default: the task's ``frames``). Returns meta.
-    """
-    import json
-    import os
-    import platform
-    import tempfile
-    from pathlib import Path
-
-    import numpy as np
-
-    from diffcontact import __version__
-    from diffcontact.config import check_array_size
-    from diffcontact.systems import build_task
-
-    task = build_task(task_name)
-    frames = task.frames if steps is None else steps
-    if n < 1:
-        raise ConfigError(f"n = {n} is not >= 1")
-    if frames < 2:
-        raise ConfigError(f"steps = {frames} is not >= 2")
-    coords = task.system.n_points * task.system.d
-    check_array_size(f"{n} trajectories x {frames} frames of {task.config.name}", 2 * n * frames * coords)
-    sim = simulator_for(task, dynamics=dynamics)
-    state = task.sample(n, seed)
-    with torch.no_grad():
-        x, v, hit = sim.rollout(state, task.params, task.dt, frames)
-        energy = task.system.energy(task.params, x.flatten(0, 1), v.flatten(0, 1)).reshape(n, frames)
-    meta = {
-        "task": task.config.name,
-        "n": n,
-        "frames": frames,
-        "seed": seed,
-        "dt": task.dt,
-        "dynamics": dynamics,
-        "contact_model": "CM",
-        "dtype": task.config.dtype,
-        "diffcontact": __version__,
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-    }
-    path = Path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(
-                fh,
-                x=x.numpy(),
-                v=v.numpy(),
-                t=np.arange(frames) * task.dt,
-                energy=energy.numpy(),
-                contact=hit.numpy(),
-                config=np.array(task.config.source),
-                meta=np.array(json.dumps(meta)),
-            )
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    if gif:
-        from diffcontact.render import render_gif
-
-        render_gif(task.system, x[0].numpy(), hit[0].numpy(), gif, task.dt)
-    return meta

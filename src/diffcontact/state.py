@@ -12,8 +12,10 @@ from dataclasses import dataclass, replace
 
 import torch
 
-Potential = Callable[[torch.Tensor], torch.Tensor]
-"""A potential energy V: positions (B, P, d) -> (B,), in joules (any consistent unit)."""
+Potential = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""A potential energy V(x, masses): positions (B, P, d) and the body masses (n_bodies,) in kg -> (B,), in joules
+(any consistent unit).  The masses are those of the Params holding V (gravity reads them; most terms ignore them),
+so replacing the inertia never leaves the potential with other masses."""
 
 
 @dataclass(frozen=True)
@@ -55,14 +57,19 @@ class Inertia:
 class Params:
     """The physical properties a model may learn.
 
-    inertia: :class:`Inertia`; potential: V(x) -> (B,); mu: (n_slots,) friction coefficients >= 0;
-    e: (n_slots,) Poisson coefficients of restitution in [0, 1].
+    inertia: :class:`Inertia`; potential: V(x, masses) -> (B,) (:data:`Potential`, read through
+    :meth:`potential_energy`); mu: (n_slots,) friction coefficients >= 0; e: (n_slots,) Poisson coefficients of
+    restitution in [0, 1].
     """
 
     inertia: Inertia
     potential: Potential
     mu: torch.Tensor
     e: torch.Tensor
+
+    def potential_energy(self, x: torch.Tensor) -> torch.Tensor:
+        """V(x) (B,) in J at positions x (B, P, d), with this Params' masses."""
+        return self.potential(x, self.inertia.masses)
 
     def replace(self, **changes) -> Params:
         """A copy with some fields replaced (e.g. ``params.replace(mu=new_mu)``)."""

@@ -9,7 +9,9 @@ import time
 import torch
 
 import diffcontact
+from diffcontact.data.store import write_text
 from diffcontact.simulator import simulator_for
+from diffcontact.solver import ContactSolver
 from diffcontact.systems import BENCHMARK_TASKS, build_task
 
 
@@ -41,23 +43,14 @@ def run_simulation_benchmark(
     rows, total = [], 0.0
     for name in names:
         task = build_task(name)
-        calls, failed = [0], [0]
-
-        def counted(A, q, mu, lower=None, active=None, **_):
-            from diffcontact.solver import solve_cone_qp
-
-            f, info = solve_cone_qp(A, q, mu, lower, active, on_failure="count", return_info=True)
-            calls[0] += 1
-            failed[0] += int(info.n_failed)
-            return f
-
-        sim = simulator_for(task, solver=counted)
+        solver = ContactSolver(on_failure="count")
+        sim = simulator_for(task, solver=solver)
         t0 = time.perf_counter()
         state = task.sample(n, seed)
         t_sample = time.perf_counter() - t0
         with torch.no_grad():
             sim.rollout(state, task.params, task.dt, warmup_steps)  # warm-up, excluded
-            calls[0] = failed[0] = 0
+            solver.reset()
             t0 = time.perf_counter()
             _, _, hit = sim.rollout(state, task.params, task.dt, steps)
             t_sim = time.perf_counter() - t0
@@ -68,13 +61,13 @@ def run_simulation_benchmark(
             "simulate_s": t_sim,
             "ms_per_step": 1e3 * t_sim / (steps - 1),
             "contact_fraction": hit[:, 1:].float().mean().item(),
-            "solver_calls": calls[0],
-            "solver_failures": failed[0],
+            "solver_calls": solver.calls,
+            "solver_failures": solver.failures,
         }
         rows.append(row)
         line = (
             f"| {name} | {t_sample:.2f} | {t_sim:.1f} | {row['ms_per_step']:.0f} | "
-            f"{row['contact_fraction']:.1%} | {calls[0]} | {failed[0]} |"
+            f"{row['contact_fraction']:.1%} | {solver.calls} | {solver.failures} |"
         )
         lines.append(line)
         print(line, flush=True)
@@ -82,6 +75,5 @@ def run_simulation_benchmark(
     lines.append(last)
     print(last)
     if out:
-        with open(out, "w") as fh:
-            fh.write("\n".join(lines) + "\n")
+        write_text(out, "\n".join(lines) + "\n")
     return rows

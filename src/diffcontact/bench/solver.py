@@ -92,10 +92,7 @@ def run_solver_benchmark(
                 print(line, flush=True)
                 lines.append(line)
     if out:
-        from pathlib import Path
+        from diffcontact.data.store import write_text
 
-        path = Path(out)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text("\n".join(lines) + "\n")
-        tmp.replace(path)
+        write_text(out, "\n".join(lines) + "\n")
     return rows

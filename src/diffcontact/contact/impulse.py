@@ -11,8 +11,8 @@ constraints; it is computed without gradient.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -20,13 +20,14 @@ from diffcontact.contact.detect import ContactSet
 from diffcontact.contact.effective_mass import effective_inverse_inertia
 from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import inverse_factor_blocks
+from diffcontact.solver.contact_solver import ContactSolver
 from diffcontact.state import Params
 
+if TYPE_CHECKING:
+    from diffcontact.systems.base import System
 
-def _default_solver():
-    from diffcontact.solver import solve_cone_qp
-
-    return solve_cone_qp
+#: The penetration compensation of a task file without ``contact.compensation``: 1/8 of depth/dt (published).
+COMPENSATION = 0.125
 
 
 @dataclass(frozen=True)
@@ -49,16 +50,16 @@ class Phases:
 
 @dataclass(frozen=True)
 class ContactModel:
-    """CM (``reg = 0``) or CMr (``reg > 0``), with penetration compensation ``compensation`` × depth/dt.
+    """CM (``reg = 0``) or CMr (``reg > 0``, 1/kg), with penetration compensation ``compensation`` × depth/dt.
 
-    ``solver`` has the signature of :func:`diffcontact.solver.solve_cone_qp` (default: that function);
-    ``on_failure`` is passed to it ("raise" by default: no silent zero impulses).
+    ``solver``: the :class:`~diffcontact.solver.ContactSolver` of both phases (tolerances, failure policy,
+    counters); the default raises on a failed problem (no silent zero impulses).  The task's contact model is
+    built by :func:`diffcontact.simulator.simulator_for`.
     """
 
     reg: float = 0.0
-    compensation: float = 0.125
-    solver: Callable | None = None
-    on_failure: str = "raise"
+    compensation: float = COMPENSATION
+    solver: ContactSolver = field(default_factory=ContactSolver)
 
     def phases(
         self,
@@ -70,7 +71,7 @@ class ContactModel:
         dt: float,
     ) -> Phases:
         """Both phases' problems and impulses for the colliding elements (see :class:`Phases`)."""
-        solve = self.solver or _default_solver()
+        solve = self.solver
         idx, dc = contacts.index, contacts.dc
         xs, vs = x[idx], v[idx]
         Bp = xs.shape[0]
@@ -80,13 +81,13 @@ class ContactModel:
         mu = torch.where(contacts.frictionless, torch.zeros((), dtype=x.dtype), params.mu.to(x)[contacts.slot])
         e = params.e.to(x)[contacts.slot]
         vC = (Jc @ vs.reshape(Bp, -1, 1))[..., 0]
-        f_c = solve(A_qp, vC, mu, None, contacts.active, on_failure=self.on_failure)
+        f_c = solve(A_qp, vC, mu, None, contacts.active)
         v_target = self.target_velocity(constraints, xs, contacts, dt)
         vC_c = vC + (A @ f_c[..., None])[..., 0]
         lower = e * f_c[:, ::dc]
         # a separating contact's compression impulse is zero up to rounding (±1e-16): the bound must stay ≥ 0
         lower = lower.clamp_min(0.0)
-        f_r = solve(A_qp, vC_c - v_target, mu, lower, contacts.active, on_failure=self.on_failure)
+        f_r = solve(A_qp, vC_c - v_target, mu, lower, contacts.active)
         return Phases(A=A, v_before=vC, f_c=f_c, f_r=f_r, mu=mu, lower=lower, MhJt=MhJt)
 
     @torch.no_grad()
@@ -109,14 +110,15 @@ class ContactModel:
         return (Jc @ y)[..., 0]
 
     def __call__(
-        self, constraints: Constraints, detector, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float
+        self, system: System, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Apply the contact model to a batch: returns (v⁺ (B, P, d), in_contact (B,) bool)."""
-        contacts = detector.detect(x)
+        """Apply the contact model to a batch of ``system`` at x, v (B, P, d) over a step of dt (s): returns
+        (v⁺ (B, P, d), in_contact (B,) bool)."""
+        contacts = system.detector.detect(x)
         flag = torch.zeros(x.shape[0], dtype=torch.bool)
         if contacts is None:
             return v, flag
-        ph = self.phases(constraints, params, x, v, contacts, dt)
+        ph = self.phases(system.constraints, params, x, v, contacts, dt)
         dv = (ph.MhJt @ (ph.f_c + ph.f_r)[..., None]).reshape(v[contacts.index].shape)
         flag[contacts.index] = True
         return v.index_put((contacts.index,), v[contacts.index] + dv), flag

@@ -26,13 +26,16 @@ Elements are handled with masks and index tensors: no Python loop over samples o
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import torch
 
 from diffcontact.contact.detect import Detector
 from diffcontact.contact.impulse import ContactModel
-from diffcontact.dynamics.constraints import Constraints
 from diffcontact.state import Params
+
+if TYPE_CHECKING:
+    from diffcontact.systems.base import System
 
 Flow = Callable[[torch.Tensor, torch.Tensor, float | torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 """The smooth flow (x, v, dt) -> (x, v) at t + dt; dt a float or a tensor (B, 1, 1) in s."""
@@ -76,19 +79,18 @@ def impact_fraction(
 def toi_step(
     flow: Flow,
     model: ContactModel,
-    constraints: Constraints,
-    detector: Detector,
+    system: System,
     params: Params,
     x: torch.Tensor,
     v: torch.Tensor,
     dt: float,
     max_events: int = MAX_EVENTS,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One step of length dt (s) from x, v (B, P, d) with contacts at their time of impact.
+    """One step of length dt (s) of ``system`` from x, v (B, P, d) with contacts at their time of impact.
 
     Returns (x, v) at t + dt and in_contact (B,) bool (an event or an end-of-step contact).
     """
-    B = x.shape[0]
+    B, detector = x.shape[0], system.detector
     tol = event_tol(x.dtype)
     x1, v1 = flow(x, v, dt)
     rem = torch.full((B,), dt, dtype=x.dtype)  # time left in the step (s); carries ds/dθ after an event
@@ -120,7 +122,7 @@ def toi_step(
             gc = detector.gaps(xc)
             mark = (gc < tol) | torch.nn.functional.one_hot(k, gc.shape[1]).bool()
         contacts = detector.select(xc, mark, gc.clamp_max(0.0))
-        ph = model.phases(constraints, params, xc, vc, contacts, dt)
+        ph = model.phases(system.constraints, params, xc, vc, contacts, dt)
         vc = vc + (ph.MhJt @ (ph.f_c + ph.f_r)[..., None]).reshape(vc.shape)
         L_after = (1 - s) * L
         xe, ve = flow(xc, vc, L_after[:, None, None])
@@ -129,5 +131,5 @@ def toi_step(
         rem = rem.index_put((rows,), L_after)
         hit[rows] = True
         resolved[rows, k] = True
-    v1, end_hit = model(constraints, detector, params, x1, v1, dt)
+    v1, end_hit = model(system, params, x1, v1, dt)
     return x1, v1, hit | end_hit

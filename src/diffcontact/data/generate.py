@@ -3,7 +3,6 @@ one 5-frame chunk per trajectory, optional noise, stored with metadata and check
 
 from __future__ import annotations
 
-import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -26,6 +25,7 @@ from diffcontact.data.store import (
     save_arrays,
     save_meta,
     verify_dataset,
+    versions,
 )
 from diffcontact.errors import ConfigError, DatasetError
 from diffcontact.simulator import simulator_for
@@ -94,7 +94,7 @@ def make_split(
     if noise > 0:
         gen = torch.Generator().manual_seed(child_seed(seed, _NOISE_STREAM))
         P, d = x.shape[2:]
-        nx, nv = add_noise(task.system.constraints, cx.reshape(-1, P, d), cv.reshape(-1, P, d), noise, gen)
+        nx, nv = add_noise(task.system, cx.reshape(-1, P, d), cv.reshape(-1, P, d), noise, gen)
         cx, cv = nx.reshape(cx.shape), nv.reshape(cv.shape)
     return {
         "x": x.numpy(),
@@ -119,7 +119,7 @@ def _request(task: Task, sizes, seeds, frames, chunk_len, p_collision, noise) ->
         "chunk_len": chunk_len,
         "p_collision": p_collision,
         "noise": noise,
-        "noise_kind": noise_kind(task.system.constraints) if noise > 0 else None,
+        "noise_kind": noise_kind(task.system) if noise > 0 else None,
         "dynamics": "lagrangian",
         "contact_model": "CM",
         "dtype": task.config.dtype,
@@ -179,18 +179,11 @@ def generate_dataset(
             pass  # invalid or different: regenerate
     remove_stale(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    from diffcontact import __version__
-
     meta: dict[str, Any] = {
         "format": FORMAT,
         "request": request,
         "config_text": task.config.source,
-        "versions": {
-            "diffcontact": __version__,
-            "torch": torch.__version__,
-            "numpy": np.__version__,
-            "python": platform.python_version(),
-        },
+        "versions": versions(),
         "splits": {},
     }
     for split in SPLITS:

@@ -9,7 +9,9 @@ Layout of ``<root>/<task>/``:
   SHA-256, array shapes and dtypes, collision counts and time taken. It is written last, so a folder without it
   is an incomplete dataset.
 
-Every file is written to a temporary name in the same folder and renamed. Loading checks the checksum, the
+Every output file of the package (datasets here, and through the writers below simulations, runs, evaluations,
+figures, GIFs and benchmark tables) is written by :func:`atomic_write`: to a temporary name in the same folder,
+then renamed. Loading checks the checksum, the
 recorded shapes and the task config, and raises :class:`DatasetError` on any mismatch.
 """
 
@@ -18,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import platform
 import tempfile
 import zipfile
 from dataclasses import dataclass
@@ -94,6 +97,45 @@ def _umask() -> int:
     return mask
 
 
+def write_json(path: str | Path, obj, sort_keys: bool = False) -> Path:
+    """``obj`` as indented JSON, atomically."""
+    return write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys) + "\n")
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """UTF-8 text, atomically."""
+    atomic_write(Path(path), lambda fh: fh.write(text.encode()))
+    return Path(path)
+
+
+def save_npz(path: str | Path, **arrays) -> Path:
+    """Arrays into a compressed .npz, atomically."""
+    atomic_write(Path(path), lambda fh: np.savez_compressed(fh, **{k: np.asarray(a) for k, a in arrays.items()}))
+    return Path(path)
+
+
+def save_figure(fig, path: str | Path, dpi: int) -> Path:
+    """A matplotlib figure as PNG, atomically."""
+    atomic_write(Path(path), lambda fh: fig.savefig(fh, format="png", dpi=dpi))
+    return Path(path)
+
+
+def save_gif(path: str | Path, frames: list[np.ndarray], seconds_per_frame: float) -> Path:
+    """RGB frames (H, W, 3) uint8 as a looping GIF, atomically."""
+    import imageio.v2 as imageio
+
+    atomic_write(Path(path), lambda fh: imageio.mimsave(fh, frames, format="GIF", duration=seconds_per_frame, loop=0))
+    return Path(path)
+
+
+def versions(**extra: str) -> dict[str, str]:
+    """The versions an output records: diffcontact, torch, numpy, python (and ``extra``)."""
+    from diffcontact import __version__
+
+    base = dict(diffcontact=__version__, torch=torch.__version__, numpy=np.__version__)
+    return base | {"python": platform.python_version()} | extra
+
+
 def save_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> str:
     """Write arrays to ``path`` (.npz, uncompressed) atomically; returns its SHA-256."""
     path = Path(path)
@@ -103,8 +145,7 @@ def save_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> str:
 
 def save_meta(folder: str | Path, meta: dict[str, Any]) -> None:
     """Write ``meta.json`` atomically."""
-    text = json.dumps(meta, indent=2, sort_keys=True) + "\n"
-    atomic_write(Path(folder) / META, lambda fh: fh.write(text.encode()))
+    write_json(Path(folder) / META, meta, sort_keys=True)
 
 
 def remove_stale(folder: str | Path) -> None:

@@ -25,7 +25,7 @@ def hamiltonian_field(
     # the partial one the field needs.
     _, Minv = body_blocks(params.inertia)
     dHdp = apply_blocks(Minv, p)
-    dHdx = -potential_force(params.potential, x)
+    dHdx = -potential_force(params, x)
     Y = torch.cat([dHdp.reshape(B, -1), -dHdx.reshape(B, -1)], dim=-1)  # J∇H, (B, 2D)
     if constraints.count == 0:
         return Y[:, : P * d].reshape(B, P, d), Y[:, P * d :].reshape(B, P, d)

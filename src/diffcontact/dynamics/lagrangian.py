@@ -10,11 +10,11 @@ import torch
 
 from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import apply_blocks, body_blocks
-from diffcontact.state import Params, Potential
+from diffcontact.state import Params
 
 
-def potential_force(potential: Potential, x: torch.Tensor) -> torch.Tensor:
-    """f = −∇V(x) by autograd: x (B, P, d) -> (B, P, d) in N.
+def potential_force(params: Params, x: torch.Tensor) -> torch.Tensor:
+    """f = −∇V(x) of ``params.potential_energy`` by autograd: x (B, P, d) -> (B, P, d) in N.
 
     The graph of ∇V is kept when gradients are enabled outside (training, gradient tests), so the force is
     differentiable w.r.t. x and the potential's parameters; under ``torch.no_grad`` it is not.
@@ -22,7 +22,7 @@ def potential_force(potential: Potential, x: torch.Tensor) -> torch.Tensor:
     outer = torch.is_grad_enabled()
     with torch.enable_grad():
         xg = x if x.requires_grad else x.detach().requires_grad_(True)
-        V = potential(xg)
+        V = params.potential_energy(xg)
         if not V.requires_grad:  # a constant potential
             return torch.zeros_like(x)
         (grad,) = torch.autograd.grad(V.sum(), xg, create_graph=outer)
@@ -57,4 +57,4 @@ def lagrangian_field(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The vector field (ẋ, v̇) = (v, a(x, v)) of the constrained Lagrangian system, each (B, P, d)."""
     _, Minv = body_blocks(params.inertia)
-    return v, constrained_acceleration(constraints, Minv, x, v, potential_force(params.potential, x))
+    return v, constrained_acceleration(constraints, Minv, x, v, potential_force(params, x))

@@ -3,14 +3,9 @@
 from __future__ import annotations
 
 import json
-import platform
 from pathlib import Path
 
-import numpy as np
-import torch
-
-import diffcontact
-from diffcontact.eval.files import save_npz, write_json
+from diffcontact.data.store import save_npz, versions, write_json
 from diffcontact.eval.loading import load_run
 from diffcontact.eval.metrics import (
     energy_deviation,
@@ -90,12 +85,7 @@ def evaluate_run(
         },
         "learned": _learned(run),
         "config": loaded.config,
-        "versions": {
-            "diffcontact": diffcontact.__version__,
-            "torch": torch.__version__,
-            "numpy": np.__version__,
-            "python": platform.python_version(),
-        },
+        "versions": versions(),
     }
     out = run / "eval"
     out.mkdir(parents=True, exist_ok=True)

@@ -120,6 +120,7 @@ def _contact_model_net(run: Path, config: dict, checkpoint: Path, task: Task) ->
     the contact models with the default contact solver, raising on failure (training counted failures and
     continued; evaluation must not)."""
     from diffcontact.models import ContactModelNet
+    from diffcontact.solver import ContactSolver
     from diffcontact.train.module import ContactLightningModule
 
     try:
@@ -135,7 +136,7 @@ def _contact_model_net(run: Path, config: dict, checkpoint: Path, task: Task) ->
     net = module.net
     if isinstance(net, ContactModelNet):  # (a model of the module without the contact solver keeps its own step)
         sim = net.simulator
-        sim.contact_model = dataclasses.replace(sim.contact_model, solver=None, on_failure="raise")
+        sim.contact_model = dataclasses.replace(sim.contact_model, solver=ContactSolver())
     return net
 
 

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 import diffcontact
+from diffcontact.data.store import write_text
 from diffcontact.eval import published
-from diffcontact.eval.files import write_text
 from diffcontact.eval.reproduce import evaluated, run_dir
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 

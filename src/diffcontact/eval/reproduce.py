@@ -23,9 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from diffcontact.config import available_tasks
+from diffcontact.data.store import write_json
 from diffcontact.errors import ConfigError
 from diffcontact.eval.evaluate import METRICS_VERSION
-from diffcontact.eval.files import write_json
 from diffcontact.eval.loading import registered_models
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.systems.registry import BENCHMARK_TASKS

@@ -11,10 +11,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from diffcontact.contact.impulse import ContactModel
 from diffcontact.errors import ConfigError
 from diffcontact.models.params import LearnedParams
-from diffcontact.simulator import Simulator
+from diffcontact.simulator import Simulator, simulator_for
+from diffcontact.solver.contact_solver import ContactSolver
 from diffcontact.state import State
 
 CMR_REG = 0.01
@@ -47,16 +47,16 @@ def build_model(
     hidden: int = 256,
     layers: int = 3,
     seed: int = 0,
-    on_failure: str = "raise",
-    solver=None,
+    solver: ContactSolver | None = None,
     reg: float | None = None,
 ) -> nn.Module:
     """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters; or one of the
     baselines' ``BASELINE_NAMES`` (:func:`diffcontact.models.baselines.build_baseline`: hidden, layers, seed apply).
 
-    ``solver`` (signature of :func:`diffcontact.solver.solve_cone_qp`) replaces the contact solver, e.g. to count
-    failures; ``on_failure`` is passed to the default one.  ``reg`` replaces a CMr model's regularisation of the
-    effective mass (A + reg·I, 1/kg; default ``CMR_REG``, the paper's).
+    ``solver`` (a :class:`~diffcontact.solver.ContactSolver`; default: one that raises on failure) solves the
+    contact problems, e.g. ``ContactSolver(on_failure="count")`` to continue and count failures.  ``reg``
+    replaces a CMr model's regularisation of the effective mass (A + reg·I, 1/kg; default ``CMR_REG``, the
+    paper's).
     """
     from diffcontact.models.baselines import BASELINE_NAMES, build_baseline
 
@@ -73,9 +73,7 @@ def build_model(
         raise ConfigError(f"reg = {reg:g} is not > 0 (the exact model is CM-...)")
     reg = default_reg if reg is None else reg
     system = task.system
-    comp = task.config.section("contact").number("compensation", 0.125, lo=0.0, hi=1.0)
-    model = ContactModel(reg=reg, compensation=comp, solver=solver, on_failure=on_failure)
-    sim = Simulator(system, dynamics, model)
+    sim = simulator_for(task, dynamics, reg, solver)
     homogeneous = len(task.config.section("contact").numbers("mu")) == 1
     params = LearnedParams(
         system.n_bodies,

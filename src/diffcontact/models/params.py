@@ -33,7 +33,8 @@ E_TRANSFORMS = {"projected": _identity, "hardsigmoid": nn.functional.hardsigmoid
 
 
 class MLPPotential(nn.Module):
-    """V(x): positions (B, P, d) -> (B,); an MLP over the flattened positions with Softplus activations."""
+    """V(x, masses): positions (B, P, d) -> (B,); an MLP over the flattened positions with Softplus activations
+    (the masses are not used: the potential is learned in whatever units the learned masses fix)."""
 
     def __init__(self, n_inputs: int, hidden: int = 256, layers: int = 3, generator: torch.Generator | None = None):
         super().__init__()
@@ -49,7 +50,7 @@ class MLPPotential(nn.Module):
                 bound = 1.0 / m.weight.shape[1] ** 0.5  # torch's default bias init, made reproducible
                 nn.init.uniform_(m.bias, -bound, bound, generator=generator)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
         return self.net(x.flatten(1)).squeeze(-1)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import torch
 
@@ -38,6 +39,18 @@ class Stepping:
     substeps: int = 1
 
 
+class NoiseCoordinates(Protocol):
+    """Coordinates of a System in which observation noise is drawn i.i.d. (``data/noise.py``), e.g. the chain
+    pendulum's link angles: ``name`` (recorded in the dataset), ``from_cartesian(x, v) -> (q, w)`` and
+    ``to_cartesian(q, w) -> (x, v)`` (x, v: (B, P, d); q, w: (B, k)), inverse maps on the constraint manifold."""
+
+    name: str
+
+    def from_cartesian(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+    def to_cartesian(self, q: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
 @dataclass(eq=False)
 class System:
     """Static structure of a rigid-body system in Cartesian coordinates.
@@ -46,7 +59,9 @@ class System:
     extended bodies), P = n_bodies · points_per_body points, D = P d coordinates; ``anchors`` (n_anchors, d)
     are fixed world points addressed by extended point indices P, P + 1, ...; ``constraints`` are the
     holonomic constraints; ``detector`` holds every contact candidate; ``n_slots`` is the length of μ and e;
-    ``stepping`` is the task's default time-stepping scheme (the Simulator may override it).
+    ``stepping`` is the task's default time-stepping scheme (the Simulator may override it);
+    ``noise_coordinates``: the coordinates observation noise is drawn in (None: Cartesian, projected back onto the
+    constraints if there are any).
     """
 
     name: str
@@ -59,6 +74,7 @@ class System:
     n_slots: int
     drawing: Drawing
     stepping: Stepping = Stepping()
+    noise_coordinates: NoiseCoordinates | None = None
 
     @property
     def n_points(self) -> int:
@@ -66,7 +82,7 @@ class System:
 
     def energy(self, params: Params, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Total energy ½vᵀMv + V(x): x, v (B, P, d) -> (B,) in J."""
-        return kinetic_energy(params.inertia, v) + params.potential(x)
+        return kinetic_energy(params.inertia, v) + params.potential_energy(x)
 
 
 Sampler = Callable[[int, torch.Generator, torch.dtype], State]

@@ -96,7 +96,7 @@ def build_bouncing(cfg: TaskConfig) -> Task:
     )
     pot = cfg.section("potential")
     g = pot.number("gravity", 0.0, lo=0.0)
-    potential = SumPotential(Gravity(g, torch.eye(d, dtype=F64)[d - 1], m, q)) if g else SumPotential()
+    potential = SumPotential(Gravity(g, torch.eye(d, dtype=F64)[d - 1], q)) if g else SumPotential()
     params = Params(Inertia(m, moments), potential, mu, e)
     init = cfg.section("init")
     if init.choice("kind", ("uniform", "billiards"), default="uniform") == "billiards":

@@ -104,7 +104,7 @@ def build_gyroscope(cfg: TaskConfig) -> Task:
     m = torch.tensor([mass], dtype=F64)
     params = Params(
         Inertia(m, torch.tensor([moments], dtype=F64)),
-        SumPotential(Gravity(g, torch.tensor([0.0, 0.0, 1.0], dtype=F64), m, 4)),
+        SumPotential(Gravity(g, torch.tensor([0.0, 0.0, 1.0], dtype=F64), 4)),
         mu,
         e,
     )

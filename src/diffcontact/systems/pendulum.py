@@ -7,6 +7,8 @@ can hit the walls/ground ``walls.lines``; slot of (mass i, wall w) = n_walls·i 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
@@ -62,6 +64,7 @@ def build_chain_pendulum(cfg: TaskConfig) -> Task:
         constraints=make_constraints(n, d, anchors, dist=dist),
         detector=Detector(kinds, n, anchors, d),
         n_slots=n_slots,
+        noise_coordinates=ChainAngles(pivot, torch.tensor(lengths, dtype=F64)),
         drawing=Drawing(
             radii=r,
             segments=torch.stack([j, i], 1),
@@ -74,7 +77,7 @@ def build_chain_pendulum(cfg: TaskConfig) -> Task:
     g = cfg.section("potential").number("gravity", 9.81, lo=0.0)
     params = Params(
         Inertia(m, torch.zeros(n, 0, dtype=F64)),
-        SumPotential(Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), m, 1)),
+        SumPotential(Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), 1)),
         mu,
         e,
     )
@@ -93,6 +96,30 @@ def build_chain_pendulum(cfg: TaskConfig) -> Task:
         return State(state.x.to(dtype), state.v.to(dtype))
 
     return Task(cfg, system, params, sample)
+
+
+@dataclass(frozen=True)
+class ChainAngles:
+    """The chain pendulum's noise coordinates (``systems.base.NoiseCoordinates``): the absolute link angles q
+    (rad, from the downward vertical) and their rates w (rad/s), (B, n), of a chain of links ``lengths`` (n,) in m
+    hanging from ``pivot`` (2,) in m."""
+
+    pivot: torch.Tensor
+    lengths: torch.Tensor
+    name: ClassVar[str] = "chain"
+
+    def from_cartesian(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """q, w (B, n) of node positions and velocities x, v (B, n, 2) on the chain."""
+        prev_x = torch.cat([self.pivot.to(x).expand(x.shape[0], 1, 2), x[:, :-1]], 1)
+        prev_v = torch.cat([torch.zeros_like(v[:, :1]), v[:, :-1]], 1)
+        link, dlink = x - prev_x, v - prev_v  # (B, n, 2)
+        q = torch.atan2(link[..., 0], -link[..., 1])
+        w = (dlink * torch.stack([torch.cos(q), torch.sin(q)], -1)).sum(-1) / self.lengths.to(x)
+        return q, w
+
+    def to_cartesian(self, q: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x, v (B, n, 2) of link angles and rates q, w (B, n)."""
+        return chain_points(self.pivot.to(q), self.lengths.to(q), q, w)
 
 
 def chain_points(

@@ -89,7 +89,7 @@ def build_rope(cfg: TaskConfig) -> Task:
     springs = Springs(prev, nodes, torch.full((n,), l0, dtype=F64), torch.full((n,), k, dtype=F64), anchors)
     params = Params(
         Inertia(m, torch.zeros(n, 0, dtype=F64)),
-        SumPotential(springs, Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), m, 1)),
+        SumPotential(springs, Gravity(g, torch.tensor([0.0, 1.0], dtype=F64), 1)),
         mu,
         e,
     )

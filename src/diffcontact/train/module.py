@@ -8,7 +8,6 @@ entirely (no update, no weight decay, no moment update) and counted.  Logged per
 
 from __future__ import annotations
 
-import logging
 from collections import Counter
 
 import lightning.pytorch as pl
@@ -16,10 +15,8 @@ import torch
 
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, build_model
-from diffcontact.solver import Status, solve_cone_qp
+from diffcontact.solver import ContactSolver
 from diffcontact.systems.registry import build_task
-
-log = logging.getLogger(__name__)
 
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
 TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
@@ -55,7 +52,8 @@ class ContactLightningModule(pl.LightningModule):
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.task = build_task(task)
-        self.solver_failures_by_status: Counter[str] = Counter()
+        self.solver = ContactSolver(on_failure="count")  # (continues with zero impulses, counts and logs failures)
+        self._failures_before: Counter[str] = Counter()  # (restored from a checkpoint)
         self.skipped_steps = 0
         net = build_model(
             self.task,
@@ -65,26 +63,22 @@ class ContactLightningModule(pl.LightningModule):
             hidden=hidden,
             layers=layers,
             seed=seed,
-            solver=self._counting_solver,
+            solver=self.solver,
             reg=reg,
         )
         self.net = net.to(getattr(torch, dtype))
         self.baseline = model in BASELINE_NAMES
         self.learns_contacts = self.learned is not None and self.learned.n_slots > 0  # (μ and e)
 
-    def _counting_solver(self, A, q, mu, lower=None, active=None, **_):
-        """The contact solver, continuing with zero impulses on failure and counting them."""
-        f, info = solve_cone_qp(A, q, mu, lower, active, on_failure="count", return_info=True)
-        if info.n_failed:
-            names = Counter(Status(c).name for c in info.status[info.failed].tolist())
-            self.solver_failures_by_status.update(names)
-            log.warning("contact solver failed for %s of %d problems; their impulses are zero", dict(names), len(f))
-        return f
-
     @property
     def learned(self):
         """The net's learned physical parameters (LearnedParams), or None (IN-CP-SP learns none)."""
         return self.net.params
+
+    @property
+    def solver_failures_by_status(self) -> Counter[str]:
+        """Contact problems the solver failed on so far, by status name (resumed runs: over all sessions)."""
+        return self._failures_before + Counter(self.solver.failures_by_status)
 
     @property
     def solver_failures(self) -> int:
@@ -178,4 +172,5 @@ class ContactLightningModule(pl.LightningModule):
         self.skipped_steps = counters.get("skipped_steps", 0)
         # (checkpoints before the count by status hold the total only)
         old = {"unknown": counters["solver_failures"]} if counters.get("solver_failures") else {}
-        self.solver_failures_by_status = Counter(counters.get("solver_failures_by_status", old))
+        self._failures_before = Counter(counters.get("solver_failures_by_status", old))
+        self.solver.reset()

@@ -3,27 +3,19 @@
 from __future__ import annotations
 
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import lightning.pytorch as pl
 import torch
 
-import diffcontact
 from diffcontact.config import load_task
-from diffcontact.data.store import atomic_write
+from diffcontact.data.store import save_figure, versions, write_json
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule
 from diffcontact.train.summary import learned_summary
-
-
-def _write_json(path: Path, obj) -> None:
-    """Write JSON atomically (``data.store.atomic_write``: an interrupted run leaves no half-written file)."""
-    atomic_write(path, lambda fh: fh.write((json.dumps(obj, indent=2) + "\n").encode()))
 
 
 def loss_curves(csv_dir: Path) -> dict[str, dict[int, float]]:
@@ -60,10 +52,8 @@ def plot_losses(csv_dir: Path, out: Path) -> Path | None:
     ax.set_yscale("log")
     ax.legend()
     fig.tight_layout()
-    tmp = out.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=100)
+    save_figure(fig, out, dpi=100)
     plt.close(fig)
-    os.replace(tmp, out)
     return out
 
 
@@ -323,13 +313,7 @@ def train_run(
             task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
         )
     run.mkdir(parents=True, exist_ok=True)
-    versions = dict(
-        diffcontact=diffcontact.__version__,
-        torch=torch.__version__,
-        lightning=pl.__version__,
-        python=platform.python_version(),
-    )
-    _write_json(run / "config.json", {"args": args, "versions": versions})
+    write_json(run / "config.json", {"args": args, "versions": versions(lightning=pl.__version__)})
     task, model, seed, dtype = args["task"], args["model"], args["seed"], args["dtype"]
 
     started = time.perf_counter()
@@ -384,7 +368,7 @@ def train_run(
     summary["solver_failures_by_status"] = dict(module.solver_failures_by_status)
     summary["wall_time_s"] = time.perf_counter() - started
     summary["run_dir"] = str(run)
-    _write_json(run / "learned.json", summary)
+    write_json(run / "learned.json", summary)
     plot_losses(run / "logs" / "csv", run / "loss.png")
     return summary
 
@@ -408,5 +392,5 @@ def summarize_run(run: str | Path) -> dict:
     fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
     summary = {**fresh, **kept}
-    _write_json(run / "learned.json", summary)
+    write_json(run / "learned.json", summary)
     return summary

@@ -38,7 +38,7 @@ def _gravity_force(task) -> torch.Tensor:
     pot = task.params.potential
     terms = [t for t in (pot.terms if isinstance(pot, SumPotential) else (pot,)) if isinstance(t, Gravity)]
     x = torch.zeros(1, task.system.n_points, task.system.d, dtype=torch.float64)
-    return potential_force(SumPotential(*terms), x)[0].detach()
+    return potential_force(task.params.replace(potential=SumPotential(*terms)), x)[0].detach()
 
 
 def build_baseline(task, name: str, *, hidden: int = 256, layers: int = 3, seed: int = 0) -> Baseline:

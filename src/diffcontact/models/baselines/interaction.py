@@ -106,4 +106,4 @@ class InteractionNetCLNN(Baseline):
         p = self.params()
         x1, v1 = self.simulator.flow(p, x, v, self.dt)
         inv = point_inverse_inertia(p.inertia.masses, p.inertia.moments)
-        return x1, v1 + self.net(x1, v1, inv, potential_force(p.potential, x1))
+        return x1, v1 + self.net(x1, v1, inv, potential_force(p, x1))

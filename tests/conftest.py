@@ -1,0 +1,16 @@
+"""Shared fixtures of the test suite."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+
+@pytest.fixture
+def float64_default():
+    """Tensors made without a dtype are float64 inside the test, and the previous default is restored after it
+    (never set at import: the default would leak into every module collected later)."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)

@@ -1,0 +1,83 @@
+"""The failure policy and counters of ContactSolver, through the whole solver path (retries included).
+
+A failing kernel status is forced on one batch element by wrapping the compiled kernel's ``lanes.solve`` (the
+well-posed problems of the simulation do not fail, so a genuine MAX_ITER or NUMERICAL cannot be made on demand);
+everything from the retry policy to the autograd Function then runs as it does in the simulation.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffcontact.errors import ContactSolverError
+from diffcontact.solver import ContactSolver, Status, lanes
+
+F64 = torch.float64
+
+
+def _problems(B: int = 5, K: int = 3, d: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(3)
+    L = torch.randn(B, K * d, K * d, generator=gen, dtype=F64)
+    A = L @ L.mT + 0.1 * torch.eye(K * d, dtype=F64)
+    return A, torch.randn(B, K * d, generator=gen, dtype=F64), torch.rand(B, K, generator=gen, dtype=F64)
+
+
+@pytest.fixture
+def fail_element_1(monkeypatch):
+    """Force the kernel's status ``code`` on batch element 1 in every attempt, once the test sets ``code``."""
+    real, forced = lanes.solve, {}
+
+    def solve(*args, out=None, **kw):
+        res = real(*args, out=out, **kw)
+        if "code" in forced:
+            res.status[1] = forced["code"]
+        return res
+
+    monkeypatch.setattr(lanes, "solve", solve)
+    return forced
+
+
+@pytest.mark.parametrize("code", [Status.MAX_ITER, Status.NUMERICAL])
+def test_contact_solver_raises_on_a_failed_element_by_default(fail_element_1, code):
+    fail_element_1["code"] = code
+    solver = ContactSolver()
+    with pytest.raises(ContactSolverError, match=rf"1 of 5 batch elements \[1\].*{code.name}") as err:
+        solver(*_problems())
+    assert err.value.failed == [1]
+
+
+@pytest.mark.parametrize("code", [Status.MAX_ITER, Status.NUMERICAL])
+def test_contact_solver_counts_failures_and_returns_zero_impulses_for_them(fail_element_1, code):
+    A, q, mu = _problems()
+    expected = ContactSolver()(A, q, mu)  # (nothing forced yet)
+    fail_element_1["code"] = code
+    solver = ContactSolver(on_failure="count")
+    for _ in range(2):
+        f = solver(A, q, mu)
+    assert torch.equal(f[1], torch.zeros_like(f[1]))
+    keep = torch.tensor([0, 2, 3, 4])
+    assert torch.equal(f[keep], expected[keep])
+    assert solver.calls == 2 and solver.problems == 10
+    assert solver.failures_by_status == {code.name: 2} and solver.failures == 2
+    solver.reset()
+    assert solver.calls == solver.problems == solver.failures == 0
+
+
+def test_contact_solver_passes_its_options_and_rejects_an_unknown_policy():
+    A, q, mu = _problems()
+    seen = {}
+
+    def spy(*args, **kw):
+        seen.update(kw)
+        return ContactSolver().backend(*args, **kw)
+
+    ContactSolver(tol=1e-8, acceptable_tol=1e-6, max_iter=7, backend=spy)(A, q, mu)
+    assert {k: seen[k] for k in ("tol", "acceptable_tol", "max_iter", "on_failure")} == {
+        "tol": 1e-8,
+        "acceptable_tol": 1e-6,
+        "max_iter": 7,
+        "on_failure": "raise",
+    }
+    with pytest.raises(ValueError, match=r"on_failure must be one of \['raise', 'count'\], got 'ignore'"):
+        ContactSolver(on_failure="ignore")
