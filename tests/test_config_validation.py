@@ -101,7 +101,7 @@ def test_three_dimensional_balls_and_their_errors():
     x, v, hit = dc.simulator_for(task).rollout(s, task.params, task.dt, 40)
     assert hit.any() and (task.system.detector.gaps(x[:, -1]) > -0.02).all()  # (gravity along -z: they land)
     mgz = 9.81 * (torch.tensor([0.1, 0.2], dtype=torch.float64) * s.x[..., 2]).sum(-1)
-    torch.testing.assert_close(task.params.potential(s.x), mgz, rtol=1e-12, atol=0)  # (V = Σ m g z)
+    torch.testing.assert_close(task.params.potential_energy(s.x), mgz, rtol=1e-12, atol=0)  # (V = Σ m g z)
     energy = task.system.energy(task.params, x[:, -1], v[:, -1])
     assert (energy < task.system.energy(task.params, s.x, s.v)).all()  # (e = 0.8 < 1: every landing loses energy)
     with pytest.raises(ConfigError, match=r"walls.lines is for 2-D bodies; in 3-D give walls.planes"):
