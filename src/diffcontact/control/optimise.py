@@ -76,10 +76,13 @@ def levenberg_marquardt(
     radius: float = 1.0,
     trials: int = 1,
     damping: float = 1e-6,
+    stall: float = 1e-4,
+    patience: int = 3,
     progress: Callable[[History], None] | None = None,
 ) -> History:
     """Minimise ‖r(θ)‖² from θ0 (n,) by damped Gauss–Newton steps, at most ``max_simulations`` simulations; stop
-    once the loss is <= ``tol``.
+    once the loss is <= ``tol``, or when ``patience`` simulations in a row lowered it by less than the fraction
+    ``stall`` (a minimum of the smooth piece of the loss the search is in).
 
     The step in scaled variables z = θ/scale (``scale`` (n,), the size of a meaningful change of each entry) is
     δz = −J̃ᵀ(J̃J̃ᵀ + λI)⁻¹r with J̃ = J·diag(scale) (the minimum-norm Gauss–Newton step when m < n and λ → 0), with
@@ -101,6 +104,7 @@ def levenberg_marquardt(
     if progress is not None:
         progress(hist)
     halves = 2.0 ** -torch.arange(trials, dtype=theta.dtype)
+    slow = 0
     while hist.simulations < max_simulations and hist.loss > tol:
         Js = J * scale
         JJ = Js @ Js.T
@@ -118,6 +122,7 @@ def levenberg_marquardt(
             losses = torch.full((trials,), float("inf"), dtype=theta.dtype)
         best = int(torch.argmin(losses))
         keep = bool(losses[best] < hist.loss)
+        slow = 0 if float(losses[best]) < (1 - stall) * hist.loss else slow + 1
         hist.record(cands[best], float(losses[best]), keep, trials)
         if keep:
             theta, r, J, radius = cands[best], r2[best], J2[best], 2 * float(lengths[best])
@@ -125,6 +130,9 @@ def levenberg_marquardt(
             radius = float(lengths[-1]) / 2
         if progress is not None:
             progress(hist)
+        if slow >= patience:
+            hist.stop = f"stalled: {patience} simulations in a row lowered the loss by < {stall:g} of it"
+            break
     hist.stop = hist.stop or ("tolerance reached" if hist.loss <= tol else "simulation budget used")
     return hist
 

@@ -68,7 +68,7 @@ class Physics:
         net = loaded.net
         if not isinstance(net, ContactModelNet):
             raise ConfigError(f"{run}: model {loaded.model_name!r} learns no physical properties (a baseline)")
-        net.requires_grad_(False)
+        net = net.to(torch.float64).requires_grad_(False)  # (trained in float32 by default; evaluated in float64)
         sim = dataclasses.replace(net.simulator, time_of_impact=True)
         with torch.no_grad():
             params = net.params()
