@@ -93,7 +93,7 @@ def test_throws_loss_falls_by_90_percent(mode):
 
 def test_adam_lowers_the_vertical_throw_loss():
     throw = Throw(Physics.true(), "vertical")
-    hist = adam(throw.residual, throw.theta0, 15, lr=0.2, scale=torch.tensor([10.0], dtype=F64))
+    hist = adam(throw.residual, throw.theta0, 6, lr=0.4, scale=torch.tensor([10.0], dtype=F64))
     assert hist.loss <= 0.1 * hist.losses[0], hist.losses
 
 
