@@ -133,3 +133,20 @@ def test_control_throw_command_writes_its_outputs(tmp_path):
     assert (tmp_path / "throw_vertical_loss.png").stat().st_size > 0
     res = CliRunner().invoke(app, [*args, "--from", str(tmp_path / "no-run")])
     assert res.exit_code == 2 and "not a run directory" in res.output
+
+
+def test_control_billiards_command_writes_its_outputs(tmp_path):
+    """A 3-ball table over 40 frames: the cue does not reach the triangle, the gradient is zero and LM says so."""
+    from typer.testing import CliRunner
+
+    from diffcontact.cli import app
+
+    args = ["control", "billiards", "--balls", "3", "--frames", "40", "--out", str(tmp_path), "--no-progress"]
+    res = CliRunner().invoke(app, [*args, "--max-simulations", "3", "--no-gif"])
+    assert res.exit_code == 0, res.output
+    result = json.loads((tmp_path / "billiards.json").read_text())
+    assert result["stop"] == "the gradient is zero" and result["simulations"] == 1
+    assert result["config"]["balls"] == 3 and "final_state" not in result["published"]
+    assert (tmp_path / "billiards_loss.png").stat().st_size > 0
+    res = CliRunner().invoke(app, [*args, "--optimiser", "sgd"])
+    assert res.exit_code == 2 and "optimiser = 'sgd' is not one of" in res.output
