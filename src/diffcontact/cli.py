@@ -281,6 +281,78 @@ def bench_simulate(
     run_simulation_benchmark(tasks=tasks or None, n=n, steps=steps, threads=threads, seed=seed, out=out or None)
 
 
+control_app = typer.Typer(
+    help="Control through contacts: optimise initial states through the simulator.", no_args_is_help=True
+)
+app.add_typer(control_app, name="control")
+
+
+@control_app.command("billiards")
+def control_billiards(
+    out: str = typer.Option("out/control", "--out", help="Folder of billiards_loss.png, billiards_shot.gif, .json."),
+    optimiser: str = typer.Option("lm", "--optimiser", help="lm (Levenberg-Marquardt on x_last(T) - goal) or adam."),
+    max_simulations: int = typer.Option(200, "--max-simulations", help="Simulations at most (the published 200)."),
+    tol: float = typer.Option(1e-4, "--tol", help="Stop once the last ball is within this distance of the goal (m)."),
+    trials: int = typer.Option(8, "--trials", help="lm: step lengths tried per simulation, in one batch."),
+    lr: float = typer.Option(0.01, "--lr", help="Adam's learning rate (in units of 0.1 m and 0.1 m/s)."),
+    balls: int = typer.Option(11, "--balls", help="Balls on the table (the cue ball and a triangle of balls - 1)."),
+    frames: int = typer.Option(0, "--frames", help="Frames simulated (0 = the task's 1024)."),
+    gif: bool = typer.Option(True, help="Write the GIF of the final shot."),
+    published: bool = typer.Option(True, help="Also simulate the published final cue state for the loss plot."),
+    progress: bool = typer.Option(True, help="Show a progress bar."),
+) -> None:
+    """Billiards (spec G.1): the cue ball's initial position and velocity so that the last ball ends at the goal."""
+    from diffcontact.control.run import run_billiards
+    from diffcontact.errors import ConfigError
+
+    try:
+        r = run_billiards(
+            out, balls=balls, frames=frames or None, optimiser=optimiser, max_simulations=max_simulations, tol=tol,
+            trials=trials, lr=lr, gif=gif, published=published, echo=typer.echo, progress=progress,
+        )  # fmt: skip
+    except ConfigError as err:
+        typer.echo(f"ConfigError: {err}", err=True)
+        raise typer.Exit(2) from err
+    typer.echo(f"billiards: distance {r['final_distance_m']:.3g} m after {r['simulations']} simulations "
+               f"({r['steps_accepted']} steps; {r['stop']}), cue (p, v) = {[round(t, 5) for t in r['best_theta']]}, "
+               f"{r['wall_time_s']:.0f} s -> {out}")  # fmt: skip
+
+
+@control_app.command("throw")
+def control_throw(
+    out: str = typer.Option("out/control", "--out", help="Folder of throw_MODE_loss.png, throw_MODE.gif, throw.json."),
+    run: str = typer.Option("", "--from", help="Also throw with the properties learned by this training run."),
+    mode: list[str] = typer.Option(["hit", "vertical"], "--mode", help="hit (land on the target) and/or vertical."),
+    optimiser: str = typer.Option("lm", "--optimiser", help="lm (Levenberg-Marquardt) or adam."),
+    max_simulations: int = typer.Option(30, "--max-simulations", help="Simulations at most per optimisation."),
+    tol: float = typer.Option(1e-5, "--tol", help="Stop at |residual| <= tol (m for hit, m/s for vertical)."),
+    trials: int = typer.Option(1, "--trials", help="lm: step lengths tried per simulation, in one batch."),
+    lr: float = typer.Option(0.1, "--lr", help="Adam's learning rate (m/s, rad/s)."),
+    gif: bool = typer.Option(True, help="Write the GIFs."),
+    progress: bool = typer.Option(True, help="Show a progress bar."),
+) -> None:
+    """Throwing a disk (spec G.2, BD1): land on a target after a bounce, or rebound vertically through spin."""
+    from diffcontact.control.run import run_throw
+    from diffcontact.errors import ConfigError
+
+    try:
+        r = run_throw(
+            out, run=run or None, modes=tuple(mode), optimiser=optimiser, max_simulations=max_simulations, tol=tol,
+            trials=trials, lr=lr, gif=gif, echo=typer.echo, progress=progress,
+        )  # fmt: skip
+    except ConfigError as err:
+        typer.echo(f"ConfigError: {err}", err=True)
+        raise typer.Exit(2) from err
+    for m in mode:
+        for key, item in r[m].items():
+            extra = item.get("landing_distance_to_true_throw_m")
+            extra = "" if extra is None else f", lands {extra * 100:.3g} cm from the true-property throw"
+            typer.echo(f"throw {m} ({key} properties): loss {item['best_loss']:.3g} after {item['simulations']} "
+                       f"simulations, theta {[round(t, 5) for t in item['best_theta']]}, landing (true physics) "
+                       f"{[round(c, 5) for c in item['landings_true_physics'][-1]]}{extra}")  # fmt: skip
+    typer.echo(f"-> {out}")
+
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 
