@@ -1,30 +1,15 @@
-"""Outputs of the control commands, each written atomically (:mod:`diffcontact.eval.files`): loss curves (PNG),
+"""Outputs of the control commands, each written atomically (:mod:`diffcontact.data.store`): loss curves (PNG),
 the motion with its target marked (GIF), and a JSON of results, config and versions."""
 
 from __future__ import annotations
 
-import platform
 from pathlib import Path
 
 import numpy as np
 
-from diffcontact.eval.files import save_figure, save_gif, write_json
+from diffcontact.data.store import save_figure, save_gif, versions, write_json
 from diffcontact.render import draw_2d
 from diffcontact.systems.base import System
-
-
-def versions() -> dict[str, str]:
-    """Versions of the packages the result depends on."""
-    import torch
-
-    import diffcontact
-
-    return {
-        "diffcontact": diffcontact.__version__,
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-    }
 
 
 def loss_curves(
