@@ -12,7 +12,7 @@ import lightning.pytorch as pl
 import torch
 
 import diffcontact
-from diffcontact.data.store import atomic_write
+from diffcontact.data.store import TMP_PREFIX, atomic_write
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.train.datamodule import ContactDataModule
@@ -148,6 +148,16 @@ class _RunCheckpoint(pl.callbacks.ModelCheckpoint):
         super().load_state_dict(state_dict)
 
 
+class _AtomicCheckpointIO(pl.plugins.TorchCheckpointIO):
+    """Checkpoints written through ``data.store.atomic_write`` (a temporary file in the checkpoint folder, fsync,
+    rename): a process killed while one is written leaves the previous one whole.  Lightning's own write goes
+    through a temporary file in the system's temporary folder, moved by a copy when that is another file system,
+    and leaves it behind when killed."""
+
+    def save_checkpoint(self, checkpoint: dict, path, storage_options=None) -> None:
+        atomic_write(Path(path), lambda fh: torch.save(checkpoint, fh))
+
+
 class _ShuffleState(pl.Callback):
     """Keeps the state of the training data loader's random generator (the batch order) in the checkpoints, so that
     a resumed run draws the batches an uninterrupted run would (the loader's generator restarts from the seed)."""
@@ -186,13 +196,15 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     ConfigError if the run has no checkpoint or config, if a ``given`` setting (not None) differs from the
     recorded one, or if ``epochs`` is fewer than the epochs already trained."""
     last = run / "checkpoints" / "last.ckpt"
-    if not last.is_file():
+    if not last.is_file() and not (run / "config.json").is_file():
         raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
     try:
         recorded = json.loads((run / "config.json").read_text())["args"]
-        checkpoint = torch.load(last, map_location="cpu", weights_only=False)
-        done = int(checkpoint["epoch"]) + 1
-        trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
+        done, trained = 0, {}  # (a run stopped before its first checkpoint starts again)
+        if last.is_file():
+            checkpoint = torch.load(last, map_location="cpu", weights_only=False)
+            done = int(checkpoint["epoch"]) + 1
+            trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
     except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
         raise ConfigError(f"--resume: {run} is not a readable training run (config.json, {last.name}): {err}") from err
     recorded.setdefault("train_loss", "l1")  # (runs from before the setting existed trained on L1)
@@ -258,7 +270,8 @@ def train_run(
     every epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  A directory that
     already holds checkpoints is refused unless ``resume``, which continues from checkpoints/last.ckpt with the
     run's recorded settings: a setting given here must equal the recorded one (``epochs`` may grow with a constant
-    schedule); the result is the same as a run that was not interrupted.
+    schedule); the result is the same as a run that was not interrupted, also after a SIGKILL at any moment
+    (checkpoints are written atomically; a run stopped before its first checkpoint starts again from its config).
     Returns the learned summary.
     """
     run = Path(out) if out else Path("runs") / task / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
@@ -356,17 +369,21 @@ def train_run(
         every_n_epochs=1,
         enable_version_counter=False,  # (one last.ckpt, always the newest)
     )
+    for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*"):  # (a checkpoint half-written when the run was killed)
+        tmp.unlink(missing_ok=True)
+    start = last if resume and last.is_file() else None
     trainer = pl.Trainer(
         max_epochs=args["epochs"],
+        plugins=[_AtomicCheckpointIO()],
         logger=loggers,
         callbacks=[checkpoints, _ShuffleState()],
         enable_progress_bar=progress,
         deterministic=True,
         log_every_n_steps=1,
         enable_model_summary=False,
-        num_sanity_val_steps=0 if resume else 2,  # (as the uninterrupted run: its counters include it once)
+        num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
     )
-    trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume else None)
+    trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
     best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
     # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
