@@ -146,7 +146,9 @@ def test_a_checkpoint_half_written_at_a_sigkill_is_never_loaded(data_root, whole
 
     run = tmp_path / "killed"
     code = KILLED_MID_WRITE.format(warm_up=WARM_UP, settings=SETTINGS)
-    proc = subprocess.run([sys.executable, "-c", code, str(run), str(data_root)], stderr=subprocess.DEVNULL, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(run), str(data_root)], stderr=subprocess.DEVNULL, timeout=300
+    )
     assert proc.returncode == -signal.SIGKILL
     half = list((run / "checkpoints").glob(".tmp-last.ckpt.*"))
     assert len(half) == 1 and half[0].stat().st_size > 0
