@@ -131,7 +131,37 @@ def load_meta(folder: str | Path) -> dict[str, Any]:
         raise DatasetError(f"{path} is not valid JSON: {err}") from err
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise DatasetError(f"{path}: format {meta.get('format') if isinstance(meta, dict) else None!r} != {FORMAT}")
+    _check_meta(meta, path)
     return meta
+
+
+# The entries of meta.json that loading reads, by table: a dataset whose metadata lacks one is incomplete.
+_REQUEST_KEYS = ("task", "config", "dt", "frames")
+_SPLIT_KEYS = ("file", "sha256", "arrays")
+
+
+def _check_meta(meta: dict[str, Any], path: Path) -> None:
+    """DatasetError naming the first entry of ``meta`` that loading needs and that is missing or malformed, or a
+    split ``file`` that is not a plain file name in the dataset's folder."""
+
+    def need(table: Any, keys, where: str) -> None:
+        if not isinstance(table, dict):
+            raise DatasetError(f"{path}: {where} is not a table; the dataset is incomplete, regenerate it")
+        for key in keys:
+            if key not in table:
+                raise DatasetError(f"{path}: {where} lacks {key!r}; the dataset is incomplete, regenerate it")
+
+    need(meta, ("request", "splits"), "the metadata")
+    need(meta["request"], _REQUEST_KEYS, "request")
+    need(meta["splits"], (), "splits")
+    for split, info in meta["splits"].items():
+        need(info, _SPLIT_KEYS, f"splits.{split}")
+        need(info["arrays"], ARRAYS, f"splits.{split}.arrays")
+        for key in ARRAYS:
+            need(info["arrays"][key], ("shape", "dtype"), f"splits.{split}.arrays.{key}")
+        name = info["file"]
+        if not isinstance(name, str) or name in ("", ".", "..") or Path(name).name != name or "\\" in name:
+            raise DatasetError(f"{path}: splits.{split}.file = {name!r} is not a file name in the dataset's folder")
 
 
 def config_json(config: TaskConfig) -> Any:

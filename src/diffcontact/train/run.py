@@ -6,6 +6,7 @@ import json
 import os
 import platform
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -14,6 +15,7 @@ import torch
 import diffcontact
 from diffcontact.data.store import TMP_PREFIX, atomic_write
 from diffcontact.errors import ConfigError
+from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule
@@ -234,6 +236,11 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     return {**recorded, "epochs": epochs}
 
 
+def _rank() -> int:
+    """The global rank of this process in a multi-process run (0 if there is none)."""
+    return int(os.environ.get("RANK", os.environ.get("LOCAL_RANK", 0)))
+
+
 def train_run(
     task: str,
     model: str | None = None,
@@ -275,130 +282,139 @@ def train_run(
     Returns the learned summary.
     """
     run = Path(out) if out else Path("runs") / task / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
-    ckpt_dir = run / "checkpoints"
-    last = ckpt_dir / "last.ckpt"
-    if resume:
-        given = dict(
-            task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
-            coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, reg=reg, weight_decay=weight_decay, mu_transform=mu_transform,
-            e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss,
-        )  # fmt: skip
-        args = _resume_settings(run, given, epochs)
-    else:
-        if ckpt_dir.is_dir() and any(ckpt_dir.glob("*.ckpt")):
-            raise ConfigError(
-                f"{ckpt_dir} already holds the checkpoints of a run: continue it with --resume, or train into another "
-                "--out (or delete that run)"
+    with output_lock(run) if _rank() == 0 else nullcontext():  # (one command at a time writes a run)
+        ckpt_dir = run / "checkpoints"
+        last = ckpt_dir / "last.ckpt"
+        if resume:
+            given = dict(
+                task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
+                coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, reg=reg, weight_decay=weight_decay, mu_transform=mu_transform,
+                e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss,
+            )  # fmt: skip
+            args = _resume_settings(run, given, epochs)
+        else:
+            if ckpt_dir.is_dir() and any(ckpt_dir.glob("*.ckpt")):
+                raise ConfigError(
+                    f"{ckpt_dir} already holds the checkpoints of a run: continue it with --resume, or train into "
+                    "another --out (or delete that run)"
+                )
+            model, preset = model or "CM-CD-CLNN", preset or "default"
+            if model not in MODEL_NAMES and model not in BASELINE_NAMES:
+                raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
+            if train_loss not in (None, *TRAIN_LOSSES):
+                raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
+            own = task_training(task)
+            settings = resolve_preset(
+                preset,
+                own,
+                epochs=epochs,
+                lr=lr,
+                schedule=schedule,
+                batch_size=batch_size,
+                mu_transform=mu_transform,
+                e_transform=e_transform,
+                coef_lr=coef_lr,
+                mu_coef_lr=mu_coef_lr,
             )
-        model, preset = model or "CM-CD-CLNN", preset or "default"
-        if model not in MODEL_NAMES and model not in BASELINE_NAMES:
-            raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
-        if train_loss not in (None, *TRAIN_LOSSES):
-            raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
-        own = task_training(task)
-        settings = resolve_preset(
-            preset,
-            own,
-            epochs=epochs,
-            lr=lr,
-            schedule=schedule,
-            batch_size=batch_size,
-            mu_transform=mu_transform,
-            e_transform=e_transform,
-            coef_lr=coef_lr,
-            mu_coef_lr=mu_coef_lr,
+            if settings["epochs"] < 1:
+                raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
+            args = dict(
+                task=task,
+                model=model,
+                preset=preset,
+                epochs=settings["epochs"],
+                seed=0 if seed is None else seed,
+                batch_size=settings["batch_size"],
+                lr=settings["lr"],
+                schedule=settings["schedule"],
+                coef_lr=settings["coef_lr"],
+                mu_coef_lr=settings["mu_coef_lr"],
+                reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
+                weight_decay=1e-4 if weight_decay is None else weight_decay,
+                train_loss=train_loss or "l1",
+                mu_transform=settings["mu_transform"],
+                e_transform=settings["e_transform"],
+                dtype=dtype or "float32",
+                data_root=str("data" if data_root is None else data_root),
+                task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
+            )
+        run.mkdir(parents=True, exist_ok=True)
+        versions = dict(
+            diffcontact=diffcontact.__version__,
+            torch=torch.__version__,
+            lightning=pl.__version__,
+            python=platform.python_version(),
         )
-        if settings["epochs"] < 1:
-            raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
-        args = dict(
-            task=task,
-            model=model,
-            preset=preset,
-            epochs=settings["epochs"],
-            seed=0 if seed is None else seed,
-            batch_size=settings["batch_size"],
-            lr=settings["lr"],
-            schedule=settings["schedule"],
-            coef_lr=settings["coef_lr"],
-            mu_coef_lr=settings["mu_coef_lr"],
-            reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
-            weight_decay=1e-4 if weight_decay is None else weight_decay,
-            train_loss=train_loss or "l1",
-            mu_transform=settings["mu_transform"],
-            e_transform=settings["e_transform"],
-            dtype=dtype or "float32",
-            data_root=str("data" if data_root is None else data_root),
-            task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
-        )
-    run.mkdir(parents=True, exist_ok=True)
-    versions = dict(
-        diffcontact=diffcontact.__version__,
-        torch=torch.__version__,
-        lightning=pl.__version__,
-        python=platform.python_version(),
-    )
-    _write_json(run / "config.json", {"args": args, "versions": versions})
-    task, model, seed, dtype = args["task"], args["model"], args["seed"], args["dtype"]
+        _write_json(run / "config.json", {"args": args, "versions": versions})
+        task, model, seed, dtype = args["task"], args["model"], args["seed"], args["dtype"]
 
-    started = time.perf_counter()
-    pl.seed_everything(seed, workers=True)
-    mode = "pairs" if model in BASELINE_NAMES else "chunks"  # (the baselines train on one-step pairs)
-    data = ContactDataModule(
-        task, root=args["data_root"], batch_size=args["batch_size"], mode=mode, dtype=getattr(torch, dtype), seed=seed
-    )
-    module = ContactLightningModule(
-        task,
-        model,
-        seed=seed,
-        dtype=dtype,
-        reg=args["reg"] if model in MODEL_NAMES and MODEL_NAMES[model][1] else None,  # (CM models, baselines: none)
-        train_loss=args["train_loss"],
-        **{
-            k: args[k]
-            for k in ("lr", "weight_decay", "mu_transform", "e_transform", "schedule", "coef_lr", "mu_coef_lr")
-        },
-    )
-    loggers = [pl.loggers.CSVLogger(run / "logs", name="csv"), pl.loggers.TensorBoardLogger(run / "logs", name="tb")]
-    checkpoints = _RunCheckpoint(
-        dirpath=ckpt_dir,
-        filename="best-{epoch}",
-        monitor="val/loss",
-        mode="min",
-        save_top_k=1,
-        save_last=True,
-        every_n_epochs=1,
-        enable_version_counter=False,  # (one last.ckpt, always the newest)
-    )
-    for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*"):  # (a checkpoint half-written when the run was killed)
-        tmp.unlink(missing_ok=True)
-    start = last if resume and last.is_file() else None
-    trainer = pl.Trainer(
-        max_epochs=args["epochs"],
-        plugins=[_AtomicCheckpointIO()],
-        logger=loggers,
-        callbacks=[checkpoints, _ShuffleState()],
-        enable_progress_bar=progress,
-        deterministic=True,
-        log_every_n_steps=1,
-        enable_model_summary=False,
-        num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
-    )
-    trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
-    best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
-    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
-    # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
-    train = data.splits["train"]
-    summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
-    summary["best_checkpoint"] = best
-    summary["epochs_trained"] = int(trainer.current_epoch)
-    summary["skipped_steps"] = module.skipped_steps
-    summary["solver_failures"] = module.solver_failures
-    summary["solver_failures_by_status"] = dict(module.solver_failures_by_status)
-    summary["wall_time_s"] = time.perf_counter() - started
-    summary["run_dir"] = str(run)
-    _write_json(run / "learned.json", summary)
-    plot_losses(run / "logs" / "csv", run / "loss.png")
-    return summary
+        started = time.perf_counter()
+        pl.seed_everything(seed, workers=True)
+        mode = "pairs" if model in BASELINE_NAMES else "chunks"  # (the baselines train on one-step pairs)
+        data = ContactDataModule(
+            task,
+            root=args["data_root"],
+            batch_size=args["batch_size"],
+            mode=mode,
+            dtype=getattr(torch, dtype),
+            seed=seed,
+        )
+        module = ContactLightningModule(
+            task,
+            model,
+            seed=seed,
+            dtype=dtype,
+            reg=args["reg"] if model in MODEL_NAMES and MODEL_NAMES[model][1] else None,  # (CM models, baselines: none)
+            train_loss=args["train_loss"],
+            **{
+                k: args[k]
+                for k in ("lr", "weight_decay", "mu_transform", "e_transform", "schedule", "coef_lr", "mu_coef_lr")
+            },
+        )
+        loggers = [
+            pl.loggers.CSVLogger(run / "logs", name="csv"),
+            pl.loggers.TensorBoardLogger(run / "logs", name="tb"),
+        ]
+        checkpoints = _RunCheckpoint(
+            dirpath=ckpt_dir,
+            filename="best-{epoch}",
+            monitor="val/loss",
+            mode="min",
+            save_top_k=1,
+            save_last=True,
+            every_n_epochs=1,
+            enable_version_counter=False,  # (one last.ckpt, always the newest)
+        )
+        for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*"):  # (a checkpoint half-written when the run was killed)
+            tmp.unlink(missing_ok=True)
+        start = last if resume and last.is_file() else None
+        trainer = pl.Trainer(
+            max_epochs=args["epochs"],
+            plugins=[_AtomicCheckpointIO()],
+            logger=loggers,
+            callbacks=[checkpoints, _ShuffleState()],
+            enable_progress_bar=progress,
+            deterministic=True,
+            log_every_n_steps=1,
+            enable_model_summary=False,
+            num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
+        )
+        trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
+        best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
+        chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
+        # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
+        train = data.splits["train"]
+        summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
+        summary["best_checkpoint"] = best
+        summary["epochs_trained"] = int(trainer.current_epoch)
+        summary["skipped_steps"] = module.skipped_steps
+        summary["solver_failures"] = module.solver_failures
+        summary["solver_failures_by_status"] = dict(module.solver_failures_by_status)
+        summary["wall_time_s"] = time.perf_counter() - started
+        summary["run_dir"] = str(run)
+        _write_json(run / "learned.json", summary)
+        plot_losses(run / "logs" / "csv", run / "loss.png")
+        return summary
 
 
 def summarize_run(run: str | Path) -> dict:
