@@ -92,8 +92,14 @@ class Simulator:
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``frames`` frames starting at ``state`` (frame 0): x, v (B, T, P, d) and in_contact (B, T).
 
-        Raises FloatingPointError naming the frame and batch element if the state becomes non-finite.
+        Raises FloatingPointError naming the frame and batch element if the state is or becomes non-finite, and
+        ConfigError unless frames >= 2 and dt > 0 (finite).
         """
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 2:
+            raise ConfigError(f"frames = {frames!r} is not an integer >= 2 (frame 0 is the initial state)")
+        if not 0 < float(dt) < float("inf"):
+            raise ConfigError(f"dt = {dt!r} is not a finite time step > 0 (s)")
+        state.check_finite(where=f"{self.system.name} initial state")
         xs, vs = [state.x], [state.v]
         flags = [torch.zeros(state.batch, dtype=torch.bool)]
         for t in range(1, frames):
@@ -133,18 +139,20 @@ def simulate_task(
     file and renamed. ``steps`` is the number of frames T (default: the task's ``frames``). Returns meta.
     """
     import json
-    import os
     import platform
-    import tempfile
     from pathlib import Path
 
     import numpy as np
 
     from diffcontact import __version__
+    from diffcontact.data.store import atomic_write, check_output
     from diffcontact.systems import build_task
 
     task = build_task(task_name)
     frames = task.frames if steps is None else steps
+    check_output(out, "--out")
+    if gif:
+        check_output(gif, "--gif")
     if n < 1:
         raise ConfigError(f"n = {n} is not >= 1")
     if frames < 2:
@@ -168,25 +176,16 @@ def simulate_task(
         "numpy": np.__version__,
         "python": platform.python_version(),
     }
-    path = Path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(
-                fh,
-                x=x.numpy(),
-                v=v.numpy(),
-                t=np.arange(frames) * task.dt,
-                energy=energy.numpy(),
-                contact=hit.numpy(),
-                config=np.array(task.config.source),
-                meta=np.array(json.dumps(meta)),
-            )
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    arrays = dict(
+        x=x.numpy(),
+        v=v.numpy(),
+        t=np.arange(frames) * task.dt,
+        energy=energy.numpy(),
+        contact=hit.numpy(),
+        config=np.array(task.config.source),
+        meta=np.array(json.dumps(meta)),
+    )
+    atomic_write(Path(out), lambda fh: np.savez_compressed(fh, **arrays))
     if gif:
         from diffcontact.render import render_gif
 

@@ -73,19 +73,40 @@ def sha256(path: str | Path) -> str:
 
 
 def atomic_write(path: Path, write) -> None:
-    """Write through ``write(fh)`` into a temporary file next to ``path``, fsync, then rename onto ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", dir=path.parent)
+    """Write through ``write(fh)`` into a temporary file next to ``path``, fsync, then rename onto ``path``; an
+    OSError (a full disk, ...) leaves no file behind and is raised again naming ``path``."""
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", dir=path.parent)
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual permissions
         os.replace(tmp, path)
+    except OSError as err:  # (disk full, read-only, ...: the error names the file; OSError(errno) keeps its subclass)
+        raise OSError(err.errno, f"cannot write {path}: {err.strerror or err}") from err
     finally:
-        if os.path.exists(tmp):
+        if tmp is not None and os.path.exists(tmp):
             os.remove(tmp)
+
+
+def check_output(path: str | Path, field: str, folder: bool = False) -> Path:
+    """ConfigError unless ``path`` can be written: a file (or with ``folder`` a directory) that is not the other
+    kind, below a writable directory (missing folders are made when it is written)."""
+    path = Path(path)
+    if path.exists() and path.is_dir() != folder:
+        raise ConfigError(f"{field} = {str(path)!r} is {'a file' if folder else 'a directory'}; give a "
+                          f"{'folder' if folder else 'file'} name")  # fmt: skip
+    parent = path.parent if not path.exists() else path
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{field} = {str(path)!r}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{field} = {str(path)!r}: the folder {parent} is not writable")
+    return path
 
 
 def _umask() -> int:
@@ -214,10 +235,14 @@ def verify_dataset(folder: str | Path, config: TaskConfig | None = None) -> dict
     return meta
 
 
-def load_split(folder: str | Path, split: str, config: TaskConfig | None = None, dtype=None) -> Split:
+def load_split(
+    folder: str | Path, split: str, config: TaskConfig | None = None, dtype=None, task: str | None = None
+) -> Split:
     """Load a verified split (checksum, config, array names, shapes, dtypes) as tensors, cast to ``dtype``
-    (floating arrays only; default: as stored, float64)."""
+    (floating arrays only; default: as stored, float64); ``task``: the task it must be of (DatasetError if not)."""
     meta = load_meta(folder)
+    if task is not None and meta["request"]["task"] != task:
+        raise DatasetError(f"{folder} holds a dataset of task {meta['request']['task']!r}, not {task!r}")
     check_config(meta, config, folder)
     path = verify_file(folder, split, meta)
     info = meta["splits"][split]

@@ -36,7 +36,7 @@ class ContactDataModule(pl.LightningDataModule):
             raise ConfigError(f"mode = {mode!r} is not one of {list(MODES)}")
         if batch_size < 1:
             raise ConfigError(f"batch_size = {batch_size} is not >= 1")
-        self.folder = Path(root) / task
+        self.task, self.folder = task, Path(root) / task
         self.batch_size, self.mode, self.dtype = batch_size, mode, dtype
         self.seed, self.num_workers = seed, num_workers
         self.splits: dict[str, Split] = {}
@@ -45,7 +45,7 @@ class ContactDataModule(pl.LightningDataModule):
         """Load and verify (checksum, config) every split once."""
         for name in SPLITS:
             if name not in self.splits:
-                self.splits[name] = load_split(self.folder, name, dtype=self.dtype)
+                self.splits[name] = load_split(self.folder, name, dtype=self.dtype, task=self.task)
 
     def _dataset(self, name: str):
         self.setup()

@@ -236,6 +236,29 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     return {**recorded, "epochs": epochs}
 
 
+def _check_numbers(settings: dict, **more) -> None:
+    """ConfigError naming the first training setting out of its domain: lr, coef_lr, mu_coef_lr finite > 0;
+    weight_decay, reg finite >= 0; batch_size an integer >= 1 (None: not given)."""
+    import math
+
+    for key, value in {**settings, **more}.items():
+        if value is None or key not in ("lr", "coef_lr", "mu_coef_lr", "weight_decay", "reg", "batch_size"):
+            continue
+        if key == "batch_size":
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"batch_size = {value!r} is not an integer >= 1")
+            continue
+        positive = key in ("lr", "coef_lr", "mu_coef_lr")
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not math.isfinite(value)
+            or value < 0
+            or (positive and value == 0)
+        ):
+            raise ConfigError(f"{key} = {value!r} is not a finite number {'> 0' if positive else '>= 0'}")
+
+
 def _rank() -> int:
     """The global rank of this process in a multi-process run (0 if there is none)."""
     return int(os.environ.get("RANK", os.environ.get("LOCAL_RANK", 0)))
@@ -318,6 +341,7 @@ def train_run(
             )
             if settings["epochs"] < 1:
                 raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
+            _check_numbers(settings, weight_decay=weight_decay, reg=reg)
             args = dict(
                 task=task,
                 model=model,
@@ -407,9 +431,7 @@ def train_run(
         summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
         summary["best_checkpoint"] = best
         summary["epochs_trained"] = int(trainer.current_epoch)
-        summary["skipped_steps"] = module.skipped_steps
-        summary["solver_failures"] = module.solver_failures
-        summary["solver_failures_by_status"] = dict(module.solver_failures_by_status)
+        summary.update(module.totals())  # (summed over the processes)
         summary["wall_time_s"] = time.perf_counter() - started
         summary["run_dir"] = str(run)
         _write_json(run / "learned.json", summary)
