@@ -162,6 +162,11 @@ def train(
         help="Continue the run in --out from its last checkpoint, with its settings (config.json); options given must "
         "equal them (--epochs may grow with a constant schedule).",
     ),
+    devices: int = typer.Option(
+        None, "--devices", help="Processes per machine (DDP when more than one; default 1, or the run's with --resume)."
+    ),
+    num_nodes: int = typer.Option(None, "--num-nodes", help="Machines (default 1): docs/scaling.md."),
+    accelerator: str = typer.Option("cpu", "--accelerator", help="cpu (gloo between processes), gpu (NCCL) or auto."),
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Train a model on a task's chunks; writes checkpoints, logs and learned.json into the run directory."""
@@ -173,8 +178,10 @@ def train(
             batch_size=batch_size, lr=lr, schedule=schedule, coef_lr=coef_lr,
             mu_coef_lr=mu_coef_lr, reg=reg, train_loss=train_loss,
             mu_transform="softplus" if smooth else None, e_transform="sigmoid" if smooth else None, resume=resume,
-            progress=progress,
+            progress=progress, devices=devices, num_nodes=num_nodes, accelerator=accelerator,
         )  # fmt: skip
+    if summary["rank"] != 0:  # (another process of a DDP run: the first one reports)
+        return
     typer.echo(f"run: {summary['run_dir']}  ({summary['wall_time_s']:.0f} s, best epoch: {summary['best_checkpoint']})")
     for key in ("mu", "e", "mass_ratio", "moments"):
         if key not in summary:

@@ -100,7 +100,7 @@ def check_problem(A, q, mu, lower=None, active=None):
         if name in ("mu", "lower") and x.size and x.min() < 0:
             negative = torch.from_numpy((x < 0).any(-1))
             raise ValueError(f"{name} must be >= 0; negative in batch elements {_first(negative)}")
-        if name == "mu" and x.size and x.max() > MU_MAX:
+        if name == "mu" and x.size and float(x.max()) > MU_MAX:
             raise ValueError(
                 f"mu must be <= {MU_MAX:g}; larger in batch elements {_first(torch.from_numpy(x > MU_MAX).any(-1))}"
             )

@@ -151,7 +151,10 @@ class ContactLightningModule(pl.LightningModule):
             why = f"its forward pass failed ({failed})" if failed else "its loss or gradients are not finite"
             log.warning("epoch %d batch %d: training step skipped: %s", self.current_epoch, batch_idx, why)
         if failed is None:
-            self.log("train/loss", loss.detach(), prog_bar=True, on_step=False, on_epoch=True, batch_size=len(batch[0]))
+            n = len(batch[0])
+            self.log(
+                "train/loss", loss.detach(), prog_bar=True, on_step=False, on_epoch=True, batch_size=n, sync_dist=True
+            )
         return loss.detach()
 
     def validation_step(self, batch, batch_idx: int):
@@ -163,17 +166,18 @@ class ContactLightningModule(pl.LightningModule):
                 "epoch %d validation batch %d: forward pass failed (%s); loss inf", self.current_epoch, batch_idx, err
             )
             loss = torch.tensor(float("inf"))
-        self.log("val/loss", loss, prog_bar=True, on_epoch=True, batch_size=batch[0].shape[0])
+        self.log("val/loss", loss, prog_bar=True, on_epoch=True, batch_size=batch[0].shape[0], sync_dist=True)
         return loss
 
     def on_train_epoch_end(self) -> None:
-        self.log("train/lr", self.optimizers().param_groups[0]["lr"])  # (the rate this epoch used)
+        # (the values below are the same on every process of a DDP run: sync_dist averages equal values)
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"], sync_dist=True)  # (the rate this epoch used)
         if self.hparams.schedule != "constant":  # (manual optimisation: the schedule is stepped here)
             self.lr_schedulers().step()
         p = self.learned
         if self.learns_contacts:
             means = {"learned/mu_mean": p.mu.detach().mean(), "learned/e_mean": p.e.detach().mean()}
-            self.log_dict(means, prog_bar=True)
+            self.log_dict(means, prog_bar=True, sync_dist=True)
         totals = self.totals()
         self.log_dict(
             {
@@ -181,11 +185,11 @@ class ContactLightningModule(pl.LightningModule):
                 "train/forward_failures": float(totals["forward_failures"]),
                 "train/solver_failures": float(totals["solver_failures"]),
             },
-            rank_zero_only=True,  # (already summed over the processes)
+            sync_dist=True,  # (already summed over the processes)
         )
         if p is not None:
             for i, r in enumerate(self.mass_ratio().tolist()):
-                self.log(f"learned/mass_ratio_{i}", r)
+                self.log(f"learned/mass_ratio_{i}", r, sync_dist=True)
 
     def mass_ratio(self) -> torch.Tensor:
         """Learned masses divided by the first body's: (n_bodies,)."""

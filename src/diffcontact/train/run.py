@@ -189,8 +189,9 @@ class _ShuffleState(pl.Callback):
 # The settings a run records in config.json ("args") that a resumed run must keep (epochs may grow).
 RUN_SETTINGS = (
     "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "reg",
-    "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss",
+    "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
 )  # fmt: skip
+ACCELERATORS = ("cpu", "gpu", "auto")
 
 
 def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
@@ -210,6 +211,8 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
         raise ConfigError(f"--resume: {run} is not a readable training run (config.json, {last.name}): {err}") from err
     recorded.setdefault("train_loss", "l1")  # (runs from before the setting existed trained on L1)
+    recorded.setdefault("devices", 1)  # (and on one process)
+    recorded.setdefault("num_nodes", 1)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
         raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
@@ -259,9 +262,12 @@ def _check_numbers(settings: dict, **more) -> None:
             raise ConfigError(f"{key} = {value!r} is not a finite number {'> 0' if positive else '>= 0'}")
 
 
-def _rank() -> int:
-    """The global rank of this process in a multi-process run (0 if there is none)."""
-    return int(os.environ.get("RANK", os.environ.get("LOCAL_RANK", 0)))
+def _rank(devices: int) -> int:
+    """The global rank of this process in a multi-process run (0 if there is none): torchrun's RANK, or from
+    Lightning's launcher the node's rank and the local one."""
+    if "RANK" in os.environ:
+        return int(os.environ["RANK"])
+    return int(os.environ.get("NODE_RANK", 0)) * devices + int(os.environ.get("LOCAL_RANK", 0))
 
 
 def train_run(
@@ -284,6 +290,9 @@ def train_run(
     reg: float | None = None,
     train_loss: str | None = None,
     dtype: str | None = None,
+    devices: int | None = None,
+    num_nodes: int | None = None,
+    accelerator: str = "cpu",
     resume: bool = False,
     progress: bool = True,
 ) -> dict:
@@ -302,17 +311,30 @@ def train_run(
     run's recorded settings: a setting given here must equal the recorded one (``epochs`` may grow with a constant
     schedule); the result is the same as a run that was not interrupted, also after a SIGKILL at any moment
     (checkpoints are written atomically; a run stopped before its first checkpoint starts again from its config).
-    Returns the learned summary.
+    ``devices`` processes on each of ``num_nodes`` machines (default 1 and 1; recorded, as the batch) train with
+    Lightning's DDP strategy (gloo on CPUs, NCCL on GPUs; ``accelerator`` "cpu", "gpu" or "auto"): ``batch_size``
+    is the batch of each process, the effective batch is batch_size × devices × num_nodes, and the learning rate is
+    not scaled with it (all three are logged and recorded in config.json).  Only the first process writes the
+    files; the counters are summed over the processes (``ContactLightningModule.totals``).  docs/scaling.md.
+
+    Returns the learned summary (on the other processes of a DDP run: the same, not written).
     """
+    if accelerator not in ACCELERATORS:
+        raise ConfigError(f"accelerator = {accelerator!r} is not one of {list(ACCELERATORS)}")
+    for key, value in (("devices", devices), ("num_nodes", num_nodes)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
     run = Path(out) if out else Path("runs") / task / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
-    with output_lock(run) if _rank() == 0 else nullcontext():  # (one command at a time writes a run)
+    first = _rank(devices or 1) == 0  # (the process that writes: the only one before a DDP launch)
+    with output_lock(run) if first else nullcontext():  # (one command at a time writes a run)
         ckpt_dir = run / "checkpoints"
         last = ckpt_dir / "last.ckpt"
         if resume:
             given = dict(
                 task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
                 coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, reg=reg, weight_decay=weight_decay, mu_transform=mu_transform,
-                e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss,
+                e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
+                num_nodes=num_nodes,
             )  # fmt: skip
             args = _resume_settings(run, given, epochs)
         else:
@@ -361,15 +383,33 @@ def train_run(
                 dtype=dtype or "float32",
                 data_root=str("data" if data_root is None else data_root),
                 task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
+                devices=devices or 1,
+                num_nodes=num_nodes or 1,
             )
-        run.mkdir(parents=True, exist_ok=True)
         versions = dict(
             diffcontact=diffcontact.__version__,
             torch=torch.__version__,
             lightning=pl.__version__,
             python=platform.python_version(),
         )
-        _write_json(run / "config.json", {"args": args, "versions": versions})
+        processes = args["devices"] * args["num_nodes"]
+        parallel = dict(
+            processes=processes,
+            accelerator=accelerator,
+            strategy="ddp" if processes > 1 else "single process",
+            batch_per_process=args["batch_size"],
+            effective_batch=args["batch_size"] * processes,
+            lr=args["lr"],
+            lr_scaling="none (the learning rate is not scaled with the effective batch)",
+        )
+        if first:
+            run.mkdir(parents=True, exist_ok=True)
+            _write_json(run / "config.json", {"args": args, "versions": versions, "parallel": parallel})
+        pl.utilities.rank_zero_info(
+            f"training on {processes} process(es) ({args['devices']} device(s) x {args['num_nodes']} node(s), "
+            f"{accelerator}): batch {args['batch_size']} per process, effective batch {parallel['effective_batch']}, "
+            f"learning rate {args['lr']:g} (not scaled)"
+        )
         task, model, seed, dtype = args["task"], args["model"], args["seed"], args["dtype"]
 
         started = time.perf_counter()
@@ -409,7 +449,7 @@ def train_run(
             every_n_epochs=1,
             enable_version_counter=False,  # (one last.ckpt, always the newest)
         )
-        for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*"):  # (a checkpoint half-written when the run was killed)
+        for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
             tmp.unlink(missing_ok=True)
         start = last if resume and last.is_file() else None
         trainer = pl.Trainer(
@@ -422,20 +462,30 @@ def train_run(
             log_every_n_steps=1,
             enable_model_summary=False,
             num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
+            accelerator=accelerator,
+            devices=args["devices"],
+            num_nodes=args["num_nodes"],
+            strategy=pl.strategies.DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
         )
         trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
+        totals = module.totals()  # (summed over the processes: every process calls it)
         best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
+        if trainer.world_size > 1:
+            best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
         chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
         # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
         train = data.splits["train"]
         summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
         summary["best_checkpoint"] = best
         summary["epochs_trained"] = int(trainer.current_epoch)
-        summary.update(module.totals())  # (summed over the processes)
+        summary.update(totals)
+        summary["processes"] = processes
+        summary["rank"] = trainer.global_rank  # (0: the process that wrote the files)
         summary["wall_time_s"] = time.perf_counter() - started
         summary["run_dir"] = str(run)
-        _write_json(run / "learned.json", summary)
-        plot_losses(run / "logs" / "csv", run / "loss.png")
+        if trainer.is_global_zero:
+            _write_json(run / "learned.json", summary)
+            plot_losses(run / "logs" / "csv", run / "loss.png")
         return summary
 
 
