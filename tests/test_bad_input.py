@@ -192,3 +192,14 @@ def test_rollout_arguments_and_a_nan_initial_state_of_a_constrained_system():
         sim.rollout(State(x, state.v), task.params, task.dt, 3)
     with pytest.raises(FloatingPointError, match=r"non-finite position or velocity in 1 batch elements \(first: 1\)"):
         sim.step(State(x, state.v), task.params, task.dt)
+
+
+@pytest.mark.parametrize("name", ["BP1", "CP3", "Gyro"])
+def test_an_empty_batch_rolls_out_to_empty_arrays(name):
+    from diffcontact.simulator import simulator_for
+
+    task = build_task(name)
+    state = task.sample(0, 0)
+    for dynamics in ("lagrangian", "hamiltonian"):
+        x, v, hit = simulator_for(task, dynamics=dynamics).rollout(state, task.params, task.dt, 4)
+        assert x.shape == v.shape == (0, 4, *state.x.shape[1:]) and hit.shape == (0, 4)

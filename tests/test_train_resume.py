@@ -255,3 +255,13 @@ def test_the_cli_names_the_setting_in_one_line(finished):
         "ConfigError: --resume: model = 'CM-CD-CHNN' differs from the run's 'CM-CD-CLNN' "
         f"({finished / 'config.json'}); leave it out to continue the run as it was, or train into another --out"
     ]
+
+
+def test_a_checkpoint_of_another_model_is_refused(finished, data_root, tmp_path):
+    other = train_run("BP1", "CM-CD-CHNN", epochs=1, out=tmp_path / "chnn", data_root=data_root, progress=False)
+    run = tmp_path / "mixed"
+    shutil.copytree(finished, run)
+    shutil.copy(tmp_path / "chnn" / "checkpoints" / "last.ckpt", run / "checkpoints" / "last.ckpt")
+    assert other["epochs_trained"] == 1
+    with pytest.raises(ConfigError, match=r"last.ckpt is of model 'CM-CD-CHNN', config.json records 'CM-CD-CLNN'"):
+        train_run("BP1", out=run, resume=True, progress=False)

@@ -100,6 +100,9 @@ class Simulator:
         if not 0 < float(dt) < float("inf"):
             raise ConfigError(f"dt = {dt!r} is not a finite time step > 0 (s)")
         state.check_finite(where=f"{self.system.name} initial state")
+        if state.batch == 0:  # (an empty batch: nothing to step)
+            empty = (state.x.new_zeros(0, frames, *state.x.shape[1:]), state.v.new_zeros(0, frames, *state.v.shape[1:]))
+            return (*empty, torch.zeros(0, frames, dtype=torch.bool))
         xs, vs = [state.x], [state.v]
         flags = [torch.zeros(state.batch, dtype=torch.bool)]
         for t in range(1, frames):
