@@ -152,10 +152,13 @@ def main() -> None:
     parser.add_argument("--total", type=int, default=1_000_000, help="problems in all")
     parser.add_argument("--batch", type=int, default=1000, help="problems per solver call")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--kinds", nargs="*", default=list(KINDS), choices=KINDS, help="kinds of trouble (all)")
     args = parser.parse_args()
+    kinds = args.kinds
     rng = np.random.default_rng(args.seed)
     counts: dict[str, collections.Counter] = {k: collections.Counter() for k in KINDS}
     silent: list[tuple] = []
+    silent_by: collections.Counter = collections.Counter()  # (kind, status) of the silent failures
     crashes: list[tuple] = []
     worst = {k: 0.0 for k in KINDS}
     done, calls, t0 = 0, 0, time.perf_counter()
@@ -166,7 +169,7 @@ def main() -> None:
         flush=True,
     )
     while done < args.total:
-        kind = KINDS[calls % len(KINDS)]
+        kind = kinds[calls % len(kinds)]
         K = int(rng.choice(CONTACTS, p=CONTACT_WEIGHTS / CONTACT_WEIGHTS.sum()))
         d = int(rng.integers(1, 4))
         B = min(args.batch, args.total - done)
@@ -207,6 +210,8 @@ def main() -> None:
         for i in np.flatnonzero(wrong | failed_not_zero)[:3]:
             silent.append((kind, K, d, Status(int(status[i])).name, float(res[i]), bool(nan[i])))
         counts[kind]["silent"] += int(wrong.sum() + failed_not_zero.sum())
+        for i in np.flatnonzero(wrong | failed_not_zero):
+            silent_by[(kind, Status(int(status[i])).name)] += 1
         if calls % 100 == 0:
             print(f"  {done} problems, {time.perf_counter() - t0:.0f} s", flush=True)
     seconds = time.perf_counter() - t0
@@ -214,7 +219,7 @@ def main() -> None:
     print(f"\n{done} problems in {calls} calls, {seconds:.0f} s ({1e6 * seconds / done:.0f} µs/problem, under load)")
     print("| kind | " + " | ".join(names) + " | worst relative residual of a usable answer |")
     print("|---" * (len(names) + 2) + "|")
-    for kind in KINDS:
+    for kind in kinds:
         row = " | ".join(str(counts[kind].get(n, 0)) for n in names)
         print(f"| {kind} | {row} | {worst[kind]:.1e} |")
     total = collections.Counter()
@@ -222,6 +227,7 @@ def main() -> None:
         total.update(c)
     print(f"| all | {' | '.join(str(total.get(n, 0)) for n in names)} | |")
     print(f"\nsilent failures (a NaN or a wrong answer reported usable, or a failure not zero): {total['silent']}")
+    print(f"  by kind and status: {dict(silent_by)}")
     print(f"crashes or unexpected outcomes: {len(crashes)}")
     for item in (silent + crashes)[:20]:
         print("  ", item)

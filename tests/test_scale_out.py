@@ -118,7 +118,12 @@ def test_two_generate_commands_at_once_leave_one_valid_dataset(tmp_path):
     assert not (tmp_path / "BP1" / LOCK_NAME).exists()
 
 
-def test_parallel_generation_is_byte_identical_to_serial(tmp_path):
+def test_parallel_generation_is_byte_identical_to_serial(tmp_path, monkeypatch):
+    """Blocks of 2 trajectories (the splits of 5 and 3: 3 and 2 blocks), one after the other or in 2 processes."""
+    import diffcontact.data.generate as gen
+
+    monkeypatch.setattr(gen, "BLOCK", 2)
+    assert gen.blocks(5) == [0, 2, 3, 5] and gen.blocks(3) == [0, 2, 3]
     serial = generate_dataset("BP1", tmp_path / "serial", **TINY)
     parallel = generate_dataset("BP1", tmp_path / "parallel", **TINY, workers=2)
     for split in SPLITS:
@@ -126,4 +131,4 @@ def test_parallel_generation_is_byte_identical_to_serial(tmp_path):
         b = (tmp_path / "parallel" / "BP1" / f"{split}.npz").read_bytes()
         assert a == b, split
         assert serial["splits"][split]["sha256"] == parallel["splits"][split]["sha256"]
-    assert serial["request"] == parallel["request"]
+    assert serial["request"] == parallel["request"] and serial["simulation_block"] == 2

@@ -69,7 +69,9 @@ def test_a_step_whose_forward_pass_fails_is_skipped_and_counted_with_a_warning(c
     module.loss = diverging_once
     before = {k: v.clone() for k, v in module.net.state_dict().items()}
     with caplog.at_level("WARNING", logger="diffcontact.train.module"):
-        _trainer(max_epochs=1, enable_checkpointing=False, limit_val_batches=0).fit(module, _loader())
+        trainer = _trainer(max_epochs=1, enable_checkpointing=False, limit_val_batches=0)
+        trainer.fit(module, _loader())
+    assert torch.isfinite(trainer.callback_metrics["train/loss"])  # (the epoch's loss: the step that ran)
     assert module.skipped_steps == 1 and module.forward_failures == 1 and len(calls) == 2
     totals = module.totals()
     assert totals["skipped_steps"] == 1 and totals["forward_failures"] == 1 and totals["solver_failures"] == 0

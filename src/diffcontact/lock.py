@@ -18,7 +18,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from diffcontact.data.store import check_output
 from diffcontact.errors import DiffContactError
 
 LOCK_NAME = ".lock"
@@ -42,6 +41,8 @@ def output_lock(folder: str | Path, wait: float = 0.0, poll: float = 0.2) -> Ite
     the lock file's path.
 
     Raises LockError if another process holds it after ``wait`` seconds (polled every ``poll`` s)."""
+    from diffcontact.data.store import check_output  # (here: diffcontact.data imports this module)
+
     folder = check_output(folder, "output folder", folder=True)
     made = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)

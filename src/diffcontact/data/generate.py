@@ -7,6 +7,7 @@ import platform
 import time
 from collections.abc import Callable
 from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,7 @@ from diffcontact.data.store import (
     save_arrays,
     save_meta,
 )
-from diffcontact.errors import ConfigError, DatasetError
+from diffcontact.errors import ConfigError, DatasetError, DiffContactError
 from diffcontact.lock import output_lock
 from diffcontact.simulator import simulator_for
 from diffcontact.state import State
@@ -38,6 +39,7 @@ from diffcontact.systems.base import Task
 DEFAULT_SIZES = {"train": 800, "val": 100, "test": 100}
 DEFAULT_SEEDS = {"train": 0, "val": 1, "test": 2}
 _SEGMENT = 10  # frames simulated between progress-bar updates
+BLOCK = 256  # trajectories simulated in one batch at most: the unit of work of a worker (``simulate_split``)
 _CHUNK_STREAM, _NOISE_STREAM = 1, 2
 
 
@@ -66,27 +68,43 @@ def simulate_split(
     """Sample ``n`` initial states with ``seed`` and simulate ``frames`` frames (true Params, CM):
     x, v (n, T, P, d) and contact (n, T) bool.
 
-    With ``workers`` > 1 the trajectories are simulated in that many processes (of ``pool``, default a new
-    ``worker_pool``), each a contiguous block of the states sampled here: each trajectory's initial state does not
-    depend on the workers, and its simulation not on the others in its batch, so the arrays are the same to the bit.
+    The trajectories are simulated in blocks of at most ``BLOCK`` (``blocks``: fixed by n alone), one after the other
+    or, with ``workers`` > 1, in that many processes (of ``pool``, default a new ``worker_pool``).  A trajectory's
+    initial state is drawn here whatever the workers, and its simulation depends on its block only (the solver's
+    results can depend on the other problems of its batch in the last bits), so the arrays are the same to the
+    bit for any number of workers.
     """
     state = task.sample(n, seed)
-    workers = min(_check_int("workers", workers, 1), n)
-    if workers == 1:
-        return _simulate(task, state, frames, progress, label)
-    if pool is None:
-        with worker_pool(workers) as own:
-            return simulate_split(task, n, seed, frames, progress, label, workers, own)
-    bounds = np.linspace(0, n, workers + 1).round().astype(int).tolist()
-    blocks = [(state.x[a:b].numpy(), state.v[a:b].numpy()) for a, b in zip(bounds[:-1], bounds[1:])]
-    threads = max(1, torch.get_num_threads() // workers)
+    workers = _check_int("workers", workers, 1)
+    bounds = blocks(n)
+    parts: list = []
     fmt = "{desc}: {percentage:3.0f}%|{bar}| {n}/{total_fmt} trajectories [{elapsed}<{remaining}]"
     with tqdm(total=n, desc=label, bar_format=fmt, disable=not progress, leave=False) as bar:
-        futures = [pool.submit(_simulate_block, task.config, x, v, frames, threads) for x, v in blocks]
-        for future in futures:
-            future.add_done_callback(lambda f: bar.update(len(f.result()[0])) if not f.exception() else None)
-        parts = [future.result() for future in futures]
-    return tuple(torch.cat([torch.from_numpy(p[k]) for p in parts]) for k in range(3))
+        if workers == 1 or len(bounds) == 2:
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                parts.append(_simulate(task, State(state.x[a:b], state.v[a:b]), frames, bar))
+        elif pool is None:
+            with worker_pool(workers) as own:
+                return simulate_split(task, n, seed, frames, progress, label, workers, own)
+        else:
+            threads = max(1, torch.get_num_threads() // workers)
+            futures = [
+                pool.submit(_simulate_block, task.config, state.x[a:b].numpy(), state.v[a:b].numpy(), frames, threads)
+                for a, b in zip(bounds[:-1], bounds[1:])
+            ]
+            for future in futures:
+                future.add_done_callback(lambda f: bar.update(len(f.result()[0])) if not f.exception() else None)
+            try:
+                parts = [tuple(torch.from_numpy(a) for a in future.result()) for future in futures]
+            except BrokenProcessPool as err:
+                raise DiffContactError(f"{label}: a worker process ended abruptly (killed? out of memory?)") from err
+    return tuple(torch.cat([p[k] for p in parts]) for k in range(3))
+
+
+def blocks(n: int) -> list[int]:
+    """The bounds of the blocks of ``n`` trajectories: ceil(n / BLOCK) blocks of sizes differing by at most one."""
+    count = -(-n // BLOCK)
+    return np.linspace(0, n, count + 1).round().astype(int).tolist()
 
 
 def worker_pool(workers: int) -> Executor:
@@ -101,19 +119,18 @@ def _simulate_block(config, x: np.ndarray, v: np.ndarray, frames: int, threads: 
     """In a worker process: the task rebuilt from its config, ``frames`` frames from the states (x, v) as arrays."""
     torch.set_num_threads(threads)
     task = build_task(config)
-    x, v, c = _simulate(task, State(torch.from_numpy(x), torch.from_numpy(v)), frames, False, "")
+    x, v, c = _simulate(task, State(torch.from_numpy(x), torch.from_numpy(v)), frames, None)
     return x.numpy(), v.numpy(), c.numpy()
 
 
 def _simulate(
-    task: Task, state: State, frames: int, progress: bool, label: str
+    task: Task, state: State, frames: int, bar: tqdm | None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``frames`` frames from ``state`` (frame 0), in segments only to update the progress bar."""
+    """``frames`` frames from ``state`` (frame 0), in segments only to move ``bar`` (by this block's trajectories)."""
     sim = simulator_for(task)
-    n = state.batch
+    n, start = state.batch, bar.n if bar is not None else 0
     xs, vs, cs = [state.x[:, None]], [state.v[:, None]], [torch.zeros(n, 1, dtype=torch.bool)]
-    fmt = "{desc}: {percentage:3.0f}%|{bar}| {n}/{total_fmt} trajectories [{elapsed}<{remaining}]"
-    with torch.no_grad(), tqdm(total=n, desc=label, bar_format=fmt, disable=not progress, leave=False) as bar:
+    with torch.no_grad():
         done = 1
         while done < frames:
             k = min(_SEGMENT, frames - done)
@@ -123,7 +140,8 @@ def _simulate(
             cs.append(c[:, 1:])
             state = State(x[:, -1], v[:, -1])
             done += k
-            bar.update(n * (done - 1) // (frames - 1) - bar.n)  # (integers: a float sum overshoots total)
+            if bar is not None:  # (integers: a float sum overshoots total)
+                bar.update(start + n * (done - 1) // (frames - 1) - bar.n)
     return torch.cat(xs, 1), torch.cat(vs, 1), torch.cat(cs, 1)
 
 
@@ -295,6 +313,7 @@ def _generate_into(
             "numpy": np.__version__,
             "python": platform.python_version(),
         },
+        "simulation_block": BLOCK,  # (trajectories simulated in one batch at most: simulate_split)
         "splits": {},
     }
     with worker_pool(workers) if workers > 1 else nullcontext() as pool:

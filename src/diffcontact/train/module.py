@@ -150,11 +150,10 @@ class ContactLightningModule(pl.LightningModule):
             opt.zero_grad()
             why = f"its forward pass failed ({failed})" if failed else "its loss or gradients are not finite"
             log.warning("epoch %d batch %d: training step skipped: %s", self.current_epoch, batch_idx, why)
-        if failed is None:
-            n = len(batch[0])
-            self.log(
-                "train/loss", loss.detach(), prog_bar=True, on_step=False, on_epoch=True, batch_size=n, sync_dist=True
-            )
+        # (logged by every step, so that the processes of a DDP run average the same metric: a failed step with
+        # weight 0, which leaves the epoch's mean to the others)
+        value, n = (loss.detach(), len(batch[0])) if failed is None else (torch.zeros(()), 0)
+        self.log("train/loss", value, prog_bar=True, on_step=False, on_epoch=True, batch_size=n, sync_dist=True)
         return loss.detach()
 
     def validation_step(self, batch, batch_idx: int):
