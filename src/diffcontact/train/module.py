@@ -28,7 +28,7 @@ from diffcontact.systems.registry import build_task
 log = logging.getLogger(__name__)
 
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
-_FAILED = {s.name for s in Status if is_failure(s)}
+_FAILED = [s.name for s in Status if is_failure(s)]  # (the statuses counted as solver failures)
 TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
 
 
@@ -102,7 +102,7 @@ class ContactLightningModule(pl.LightningModule):
     def totals(self) -> dict:
         """The counters of the run, summed over its processes (a collective call on several: every process calls it):
         skipped_steps, forward_failures, solver_failures and solver_failures_by_status."""
-        names = [*(s.name for s in Status if is_failure(s)), *sorted(set(self.solver_failures_by_status) - _FAILED)]
+        names = [*_FAILED, "unknown"]  # (the same on every process; "unknown": counts of old checkpoints)
         local = torch.tensor(
             [self.forward_failures, *(self.solver_failures_by_status[n] for n in names)], dtype=torch.float64
         )
