@@ -73,12 +73,15 @@ def test_metadata_records_config_seeds_versions_shapes_counts(dataset):
     assert sorted(p.name for p in folder.iterdir()) == ["meta.json", "test.npz", "train.npz", "val.npz"]
 
 
-def test_identical_dataset_is_skipped_and_a_different_request_regenerates(dataset, tmp_path):
+def test_identical_dataset_is_skipped_and_a_different_request_is_replaced_only_with_force(dataset, tmp_path):
     folder = _copy(dataset, tmp_path)
     before = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
     assert generate_dataset(TASK, tmp_path, **SMALL)["skipped"]
     assert before == {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
-    meta = generate_dataset(TASK, tmp_path, **{**SMALL, "n_test": 5})
+    with pytest.raises(ConfigError, match=r"holds a dataset of another request \(sizes.test 6 -> 5\); replace it with"):
+        generate_dataset(TASK, tmp_path, **{**SMALL, "n_test": 5})
+    assert before == {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
+    meta = generate_dataset(TASK, tmp_path, **{**SMALL, "n_test": 5}, force=True)
     assert not meta["skipped"] and load_split(folder, "test").n == 5
     # an invalid dataset with the same request is regenerated too, not reused
     with open(folder / "val.npz", "r+b") as fh:
@@ -138,7 +141,7 @@ def test_failure_between_write_and_rename_leaves_no_loadable_dataset(dataset, tm
 
     monkeypatch.setattr(store_mod.os, "replace", failing_replace)
     with pytest.raises(KeyboardInterrupt):
-        generate_dataset(TASK, tmp_path, **{**SMALL, "n_val": 5})
+        generate_dataset(TASK, tmp_path, **{**SMALL, "n_val": 5}, force=True)
     monkeypatch.undo()
     assert not (folder / "meta.json").exists() and not list(folder.glob(".tmp-*"))
     for split in SPLITS:

@@ -52,3 +52,30 @@ def test_resume_continues_from_the_saved_epoch_with_the_same_optimiser_state(tmp
     assert resumed.current_epoch == straight.current_epoch == 4
     for k, v in straight.net.state_dict().items():
         assert torch.allclose(v, resumed.net.state_dict()[k], rtol=1e-5, atol=1e-6), k
+
+
+def test_a_step_whose_forward_pass_fails_is_skipped_and_counted_with_a_warning(caplog):
+    """A forward pass that ends in a non-finite state (FloatingPointError from the simulator) skips its step as
+    non-finite gradients do, with one warning naming it; training continues."""
+    module = _module()
+    real, calls = module.loss, []
+
+    def diverging_once(batch):
+        calls.append(1)
+        if len(calls) == 1:
+            raise FloatingPointError("BP1 frame 3: non-finite position or velocity in batch element 0")
+        return real(batch)
+
+    module.loss = diverging_once
+    before = {k: v.clone() for k, v in module.net.state_dict().items()}
+    with caplog.at_level("WARNING", logger="diffcontact.train.module"):
+        trainer = _trainer(max_epochs=1, enable_checkpointing=False, limit_val_batches=0)
+        trainer.fit(module, _loader())
+    assert torch.isfinite(trainer.callback_metrics["train/loss"])  # (the epoch's loss: the step that ran)
+    assert module.skipped_steps == 1 and module.forward_failures == 1 and len(calls) == 2
+    totals = module.totals()
+    assert totals["skipped_steps"] == 1 and totals["forward_failures"] == 1 and totals["solver_failures"] == 0
+    assert any(not torch.equal(before[k], v) for k, v in module.net.state_dict().items())  # (the second step ran)
+    warned = [r.getMessage() for r in caplog.records if "training step skipped" in r.getMessage()]
+    assert warned == ["epoch 0 batch 0: training step skipped: its forward pass failed (BP1 frame 3: non-finite "
+                      "position or velocity in batch element 0)"]  # fmt: skip

@@ -113,6 +113,58 @@ def test_a_run_killed_by_sigkill_resumes_to_the_same_end(data_root, whole, tmp_p
     _same_end(whole, run)
 
 
+# Run in a subprocess: the training of ``whole`` whose third write of last.ckpt (epoch 2) stops half-way with a SIGKILL.
+KILLED_MID_WRITE = """
+import io, os, signal, sys, torch
+import diffcontact.train.run as run
+from diffcontact.train.module import ContactLightningModule
+from diffcontact.train.run import train_run
+real, writes = run.atomic_write, []
+def half_then_kill(write):
+    def partial(fh):
+        buffer = io.BytesIO()
+        write(buffer)
+        fh.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+        fh.flush()
+        os.kill(os.getpid(), signal.SIGKILL)
+    return partial
+def atomic_write(path, write):
+    writes.append(path.name)
+    real(path, half_then_kill(write) if writes.count("last.ckpt") == 3 else write)
+run.atomic_write = atomic_write
+{warm_up}
+train_run("BP1", out=sys.argv[1], data_root=sys.argv[2], progress=False, **{settings!r})
+"""
+
+
+def test_a_checkpoint_half_written_at_a_sigkill_is_never_loaded(data_root, whole, tmp_path):
+    """SIGKILL while last.ckpt of epoch 2 is written: the half-written file is a temporary one beside last.ckpt (of
+    epoch 1, whole); the resumed run deletes it and ends bit-identical to the uninterrupted run."""
+    import signal
+    import subprocess
+    import sys
+
+    run = tmp_path / "killed"
+    code = KILLED_MID_WRITE.format(warm_up=WARM_UP, settings=SETTINGS)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(run), str(data_root)], stderr=subprocess.DEVNULL, timeout=300
+    )
+    assert proc.returncode == -signal.SIGKILL
+    half = list((run / "checkpoints").glob(".tmp-last.ckpt.*"))
+    assert len(half) == 1 and half[0].stat().st_size > 0
+    assert _state(run)["epoch"] == 1
+    train_run("BP1", out=run, resume=True, progress=False)
+    _same_end(whole, run)
+    assert not list((run / "checkpoints").glob(".tmp-*"))
+
+
+def test_a_run_stopped_before_its_first_checkpoint_resumes_from_the_start(data_root, whole, tmp_path, monkeypatch):
+    _killed_at_epoch(monkeypatch, 0, out=tmp_path / "early", data_root=data_root, **SETTINGS)
+    assert not (tmp_path / "early" / "checkpoints" / "last.ckpt").exists()
+    train_run("BP1", out=tmp_path / "early", resume=True, progress=False)
+    _same_end(whole, tmp_path / "early")
+
+
 @pytest.fixture(scope="module")
 def finished(data_root, tmp_path_factory):
     """A finished 2-epoch run (constant lr 3e-3, batch 8): its directory."""
@@ -203,3 +255,13 @@ def test_the_cli_names_the_setting_in_one_line(finished):
         "ConfigError: --resume: model = 'CM-CD-CHNN' differs from the run's 'CM-CD-CLNN' "
         f"({finished / 'config.json'}); leave it out to continue the run as it was, or train into another --out"
     ]
+
+
+def test_a_checkpoint_of_another_model_is_refused(finished, data_root, tmp_path):
+    other = train_run("BP1", "CM-CD-CHNN", epochs=1, out=tmp_path / "chnn", data_root=data_root, progress=False)
+    run = tmp_path / "mixed"
+    shutil.copytree(finished, run)
+    shutil.copy(tmp_path / "chnn" / "checkpoints" / "last.ckpt", run / "checkpoints" / "last.ckpt")
+    assert other["epochs_trained"] == 1
+    with pytest.raises(ConfigError, match=r"last.ckpt is of model 'CM-CD-CHNN', config.json records 'CM-CD-CLNN'"):
+        train_run("BP1", out=run, resume=True, progress=False)

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import typer
 
@@ -14,6 +17,24 @@ app = typer.Typer(
 TASK_HELP = (
     "A packaged task's name (e.g. BP5-e; diffcontact/tasks/NAME.toml) or the path of a task file (./my_task.toml)."
 )
+
+
+@contextmanager
+def _user_errors() -> Iterator[None]:
+    """A user's mistake (a DiffContactError: a bad setting, a dataset or run that does not fit, a locked output),
+    a diverging simulation or an output that cannot be written ends the command with one line on stderr and exit
+    code 2, no traceback (DIFFCONTACT_TRACEBACK=1 shows it)."""
+    from diffcontact.errors import DiffContactError
+
+    try:
+        yield
+    except (DiffContactError, FloatingPointError, OSError) as err:
+        if os.environ.get("DIFFCONTACT_TRACEBACK"):
+            raise
+        typer.echo(f"{type(err).__name__}: {err}", err=True)
+        raise typer.Exit(2) from err
+
+
 bench_app = typer.Typer(help="Benchmarks (medians and ratios measured in one run).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 
@@ -34,16 +55,17 @@ def bench_solver(
     """Forward+backward time per problem of the contact solver against the cvxpylayers reference."""
     from diffcontact.bench.solver import run_solver_benchmark
 
-    run_solver_benchmark(
-        batches=batch,
-        contacts=contacts,
-        dims=dims,
-        repeats=repeats,
-        reference=reference,
-        ref_max_batch=ref_max_batch,
-        seed=seed,
-        out=out or None,
-    )
+    with _user_errors():
+        run_solver_benchmark(
+            batches=batch,
+            contacts=contacts,
+            dims=dims,
+            repeats=repeats,
+            reference=reference,
+            ref_max_batch=ref_max_batch,
+            seed=seed,
+            out=out or None,
+        )
 
 
 @app.command("simulate")
@@ -57,14 +79,10 @@ def simulate(
     dynamics: str = typer.Option("lagrangian", help="lagrangian (x, v) or hamiltonian (x, p)."),
 ) -> None:
     """Simulate a task with its true parameters (exact contact model CM, float64)."""
-    from diffcontact.errors import ConfigError
     from diffcontact.simulate import simulate_task
 
-    try:
-        meta = simulate_task(task, n, steps or None, seed, out, gif or None, dynamics)
-    except ConfigError as err:
-        typer.echo(f"ConfigError: {err}", err=True)
-        raise typer.Exit(2) from err
+    with _user_errors():
+        meta = simulate_task(task, n, None if steps == 0 else steps, seed, out, gif or None, dynamics)
     typer.echo(f"wrote {out}: {meta['n']} trajectories x {meta['frames']} frames of {meta['task']}")
 
 
@@ -78,29 +96,28 @@ def generate(
     n_val: int = typer.Option(100, "--n-val", help="Validation trajectories."),
     n_test: int = typer.Option(100, "--n-test", help="Test trajectories."),
     seeds: tuple[int, int, int] = typer.Option((0, 1, 2), "--seeds", help="Seeds of train, val and test."),
-    force: bool = typer.Option(False, "--force", help="Regenerate even if an identical valid dataset exists."),
+    force: bool = typer.Option(
+        False, "--force", help="Regenerate even if an identical valid dataset exists, or replace one of other sizes."
+    ),
+    workers: int = typer.Option(1, "--workers", help="Processes simulating the trajectories (the same bytes for any)."),
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Generate train/val/test trajectories and 5-frame chunks of a task (CM, float64), with checksums."""
     import time
 
     from diffcontact.data.generate import generate_dataset
-    from diffcontact.errors import ConfigError
     from diffcontact.systems.registry import BENCHMARK_TASKS
 
     if all_tasks == bool(task):
         raise typer.BadParameter("give either a TASK or --all")
     t0 = time.perf_counter()
     names = list(BENCHMARK_TASKS) if all_tasks else [task]
-    try:
+    with _user_errors():
         for name in names:
             generate_dataset(
                 name, out, n_train=n_train, n_val=n_val, n_test=n_test, seeds=seeds, noise=noise,
-                force=force, progress=progress, echo=typer.echo,
+                force=force, progress=progress, echo=typer.echo, workers=workers,
             )  # fmt: skip
-    except ConfigError as err:
-        typer.echo(f"ConfigError: {err}", err=True)
-        raise typer.Exit(2) from err
     typer.echo(f"done: {len(names)} task(s) in {time.perf_counter() - t0:.1f} s -> {out}")
 
 
@@ -148,23 +165,26 @@ def train(
         help="Continue the run in --out from its last checkpoint, with its settings (config.json); options given must "
         "equal them (--epochs may grow with a constant schedule).",
     ),
+    devices: int = typer.Option(
+        None, "--devices", help="Processes per machine (DDP when more than one; default 1, or the run's with --resume)."
+    ),
+    num_nodes: int = typer.Option(None, "--num-nodes", help="Machines (default 1): docs/scaling.md."),
+    accelerator: str = typer.Option("cpu", "--accelerator", help="cpu (gloo between processes), gpu (NCCL) or auto."),
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Train a model on a task's chunks; writes checkpoints, logs and learned.json into the run directory."""
-    from diffcontact.errors import ConfigError, DatasetError
     from diffcontact.train.run import train_run
 
-    try:
+    with _user_errors():
         summary = train_run(
             task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
             batch_size=batch_size, lr=lr, schedule=schedule, coef_lr=coef_lr,
             mu_coef_lr=mu_coef_lr, reg=reg, train_loss=train_loss,
             mu_transform="softplus" if smooth else None, e_transform="sigmoid" if smooth else None, resume=resume,
-            progress=progress,
+            progress=progress, devices=devices, num_nodes=num_nodes, accelerator=accelerator,
         )  # fmt: skip
-    except (ConfigError, DatasetError) as err:
-        typer.echo(f"{type(err).__name__}: {err}", err=True)
-        raise typer.Exit(2) from err
+    if summary["rank"] != 0:  # (another process of a DDP run: the first one reports)
+        return
     typer.echo(f"run: {summary['run_dir']}  ({summary['wall_time_s']:.0f} s, best epoch: {summary['best_checkpoint']})")
     for key in ("mu", "e", "mass_ratio", "moments"):
         if key not in summary:
@@ -188,14 +208,10 @@ def train(
 @app.command("summarize")
 def summarize(run: str = typer.Argument(..., help="Run directory of a finished `diffcontact train`.")) -> None:
     """Recompute a run's learned.json (learned against true, what the data identify) from its best checkpoint."""
-    from diffcontact.errors import ConfigError, DatasetError
     from diffcontact.train.run import summarize_run
 
-    try:
+    with _user_errors():
         summary = summarize_run(run)
-    except (ConfigError, DatasetError) as err:
-        typer.echo(f"{type(err).__name__}: {err}", err=True)
-        raise typer.Exit(2) from err
     typer.echo(json.dumps({k: summary[k]["max_abs_error"] for k in ("mu", "e", "mass_ratio")}))
 
 
@@ -209,14 +225,10 @@ def evaluate(
     pictures: bool = typer.Option(True, help="Also draw the rollout picture and GIF."),
 ) -> None:
     """Metrics (5-step error, error curve, true energy) of a run's best model against the exact model; figures."""
-    from diffcontact.errors import DiffContactError
     from diffcontact.eval.evaluate import evaluate_run
 
-    try:
+    with _user_errors():  # (a bad run or data, a failed solve, a diverging model)
         m = evaluate_run(run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures)
-    except (DiffContactError, FloatingPointError) as err:  # (a bad run or data, a failed solve, a diverging model)
-        typer.echo(f"{type(err).__name__}: {err}", err=True)
-        raise typer.Exit(2) from err
     err5, energy = m["trajectory_error"], m["energy"]
     half = "n/a" if err5["ci95"] is None else f"{err5['ci95']:.3g}"
     typer.echo(f"{m['task']} {m['model']}: {err5['steps']}-step error {err5['mean']:.4g} ± {half} (95 %, "
@@ -239,17 +251,13 @@ def reproduce(
     Resumable: evaluated runs are skipped, an interrupted training continues from its last checkpoint."""
     import sys
 
-    from diffcontact.errors import ConfigError, DatasetError
     from diffcontact.eval.reproduce import reproduce as run_matrix
 
-    try:
+    with _user_errors():
         run_matrix(
             tasks, models, seeds, out, quick=quick, jobs=jobs, data=data or None, echo=typer.echo,
             command=" ".join(["diffcontact", *sys.argv[1:]]),
         )  # fmt: skip
-    except (ConfigError, DatasetError) as err:
-        typer.echo(f"{type(err).__name__}: {err}", err=True)
-        raise typer.Exit(2) from err
 
 
 @bench_app.command("near-psd")
@@ -261,7 +269,8 @@ def bench_near_psd(
     """Stress test: singular PSD effective masses rounded to float32 (every size the tasks use); no failure allowed."""
     from diffcontact.bench.near_psd import run_near_psd_benchmark
 
-    run_near_psd_benchmark(total=total, batch=batch, seed=seed)
+    with _user_errors():
+        run_near_psd_benchmark(total=total, batch=batch, seed=seed)
 
 
 @bench_app.command("simulate")
@@ -278,7 +287,8 @@ def bench_simulate(
     """Wall time of simulating N trajectories x T frames for each task (CM, float64)."""
     from diffcontact.bench.simulate import run_simulation_benchmark
 
-    run_simulation_benchmark(tasks=tasks or None, n=n, steps=steps, threads=threads, seed=seed, out=out or None)
+    with _user_errors():
+        run_simulation_benchmark(tasks=tasks or None, n=n, steps=steps, threads=threads, seed=seed, out=out or None)
 
 
 control_app = typer.Typer(

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from diffcontact.config import check_array_size
-from diffcontact.data.store import save_npz, versions
+from diffcontact.data.store import check_output, save_npz, versions
 from diffcontact.errors import ConfigError
 from diffcontact.simulator import simulator_for
 from diffcontact.systems import build_task
@@ -25,6 +25,9 @@ def simulate_task(
     """
     task = build_task(task_name)
     frames = task.frames if steps is None else steps
+    check_output(out, "--out")
+    if gif:
+        check_output(gif, "--gif")
     if n < 1:
         raise ConfigError(f"n = {n} is not >= 1")
     if frames < 2:

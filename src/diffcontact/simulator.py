@@ -93,8 +93,17 @@ class Simulator:
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``frames`` frames starting at ``state`` (frame 0): x, v (B, T, P, d) and in_contact (B, T).
 
-        Raises FloatingPointError naming the frame and batch element if the state becomes non-finite.
+        Raises FloatingPointError naming the frame and batch element if the state is or becomes non-finite, and
+        ConfigError unless frames >= 2 and dt > 0 (finite).
         """
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 2:
+            raise ConfigError(f"frames = {frames!r} is not an integer >= 2 (frame 0 is the initial state)")
+        if not 0 < float(dt) < float("inf"):
+            raise ConfigError(f"dt = {dt!r} is not a finite time step > 0 (s)")
+        state.check_finite(where=f"{self.system.name} initial state")
+        if state.batch == 0:  # (an empty batch: nothing to step)
+            empty = (state.x.new_zeros(0, frames, *state.x.shape[1:]), state.v.new_zeros(0, frames, *state.v.shape[1:]))
+            return (*empty, torch.zeros(0, frames, dtype=torch.bool))
         xs, vs = [state.x], [state.v]
         flags = [torch.zeros(state.batch, dtype=torch.bool)]
         for t in range(1, frames):

@@ -8,6 +8,7 @@ import time
 
 import torch
 
+from diffcontact.bench import check_counts
 from diffcontact.solver import Status, solve_cone_qp
 
 # (K, d): rope (d = 1, up to 19 contacts), balls / pendulum / disks (d = 2, up to 5), gyroscope (d = 3)
@@ -43,6 +44,7 @@ def run_near_psd_benchmark(total: int = 100_000, batch: int = 1000, seed: int = 
     """Solve ``total`` near-PSD problems, spread over TASK_SIZES and both dtypes, forward and backward; print and
     return the status counts, the worst feasibility violation and the time per problem.  No failure is allowed:
     the function raises if any problem fails."""
+    check_counts(n=total, batch=batch)
     gen = torch.Generator().manual_seed(seed)
     counts = {s.name: 0 for s in Status}
     worst = {"float32": 0.0, "float64": 0.0}

@@ -5,11 +5,15 @@ from __future__ import annotations
 import os
 import platform
 import time
+from pathlib import Path
 
 import torch
 
 import diffcontact
+from diffcontact.bench import check_counts
+from diffcontact.config import available_tasks
 from diffcontact.data.store import write_text
+from diffcontact.errors import ConfigError
 from diffcontact.simulator import simulator_for
 from diffcontact.solver import ContactSolver
 from diffcontact.systems import BENCHMARK_TASKS, build_task
@@ -30,8 +34,13 @@ def run_simulation_benchmark(
     contact, solver calls and solver failures (problems not converged; the benchmark continues with
     on_failure="count", which gives those contacts zero impulse, and reports the count). Returns the rows.
     """
-    torch.set_num_threads(threads)
     names = list(tasks or BENCHMARK_TASKS)
+    check_counts(n=n, threads=threads, warmup_steps=warmup_steps)
+    check_counts(2, steps=steps)
+    unknown = [name for name in names if name not in available_tasks() and not Path(name).is_file()]
+    if unknown:
+        raise ConfigError(f"tasks {unknown} are unknown; available: {', '.join(available_tasks())}")
+    torch.set_num_threads(threads)
     print(
         f"diffcontact {diffcontact.__version__}, torch {torch.__version__}, python {platform.python_version()}, "
         f"{platform.machine()}, {os.cpu_count()} CPUs, {torch.get_num_threads()} torch threads; "

@@ -9,6 +9,8 @@ import time
 import torch
 
 import diffcontact
+from diffcontact.bench import check_counts
+from diffcontact.errors import ConfigError
 from diffcontact.solver import solve_cone_qp
 
 REFERENCE_EPS = 1e-8  # SCS tolerance of the cvxpylayers baseline
@@ -46,6 +48,9 @@ def run_solver_benchmark(
     out: str | None = None,
 ) -> list[dict]:
     """Print (and optionally write as Markdown) the table; returns its rows."""
+    check_counts(batches=batches, contacts=contacts, repeats=repeats, ref_max_batch=ref_max_batch)
+    if not dims or any(d not in (1, 2, 3) for d in dims):
+        raise ConfigError(f"dims = {dims!r}: every contact dimension must be 1, 2 or 3")
     torch.set_num_threads(2)
     if reference:
         import functools

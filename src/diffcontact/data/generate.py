@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -21,13 +24,14 @@ from diffcontact.data.store import (
     config_json,
     describe,
     load_meta,
+    load_split,
     remove_stale,
     save_arrays,
     save_meta,
-    verify_dataset,
     versions,
 )
-from diffcontact.errors import ConfigError, DatasetError
+from diffcontact.errors import ConfigError, DatasetError, DiffContactError
+from diffcontact.lock import output_lock
 from diffcontact.simulator import simulator_for
 from diffcontact.state import State
 from diffcontact.systems import build_task
@@ -36,6 +40,7 @@ from diffcontact.systems.base import Task
 DEFAULT_SIZES = {"train": 800, "val": 100, "test": 100}
 DEFAULT_SEEDS = {"train": 0, "val": 1, "test": 2}
 _SEGMENT = 10  # frames simulated between progress-bar updates
+BLOCK = 256  # trajectories simulated in one batch at most: the unit of work of a worker (``simulate_split``)
 _CHUNK_STREAM, _NOISE_STREAM = 1, 2
 
 
@@ -52,15 +57,81 @@ def _check_int(name: str, value: int, lo: int) -> int:
 
 
 def simulate_split(
-    task: Task, n: int, seed: int, frames: int, progress: bool = True, label: str = ""
+    task: Task,
+    n: int,
+    seed: int,
+    frames: int,
+    progress: bool = True,
+    label: str = "",
+    workers: int = 1,
+    pool: Executor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Sample ``n`` initial states with ``seed`` and simulate ``frames`` frames (true Params, CM):
-    x, v (n, T, P, d) and contact (n, T) bool. The rollout runs in segments only to update the progress bar."""
-    sim = simulator_for(task)
+    x, v (n, T, P, d) and contact (n, T) bool.
+
+    The trajectories are simulated in blocks of at most ``BLOCK`` (``blocks``: fixed by n alone), one after the other
+    or, with ``workers`` > 1, in that many processes (of ``pool``, default a new ``worker_pool``).  A trajectory's
+    initial state is drawn here whatever the workers, and its simulation depends on its block only (the solver's
+    results can depend on the other problems of its batch in the last bits), so the arrays are the same to the
+    bit for any number of workers.
+    """
     state = task.sample(n, seed)
-    xs, vs, cs = [state.x[:, None]], [state.v[:, None]], [torch.zeros(n, 1, dtype=torch.bool)]
+    workers = _check_int("workers", workers, 1)
+    bounds = blocks(n)
+    parts: list = []
     fmt = "{desc}: {percentage:3.0f}%|{bar}| {n}/{total_fmt} trajectories [{elapsed}<{remaining}]"
-    with torch.no_grad(), tqdm(total=n, desc=label, bar_format=fmt, disable=not progress, leave=False) as bar:
+    with tqdm(total=n, desc=label, bar_format=fmt, disable=not progress, leave=False) as bar:
+        if workers == 1 or len(bounds) == 2:
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                parts.append(_simulate(task, State(state.x[a:b], state.v[a:b]), frames, bar))
+        elif pool is None:
+            with worker_pool(workers) as own:
+                return simulate_split(task, n, seed, frames, progress, label, workers, own)
+        else:
+            threads = max(1, torch.get_num_threads() // workers)
+            futures = [
+                pool.submit(_simulate_block, task.config, state.x[a:b].numpy(), state.v[a:b].numpy(), frames, threads)
+                for a, b in zip(bounds[:-1], bounds[1:])
+            ]
+            for future in futures:
+                future.add_done_callback(lambda f: bar.update(len(f.result()[0])) if not f.exception() else None)
+            try:
+                parts = [tuple(torch.from_numpy(a) for a in future.result()) for future in futures]
+            except BrokenProcessPool as err:
+                raise DiffContactError(f"{label}: a worker process ended abruptly (killed? out of memory?)") from err
+    return tuple(torch.cat([p[k] for p in parts]) for k in range(3))
+
+
+def blocks(n: int) -> list[int]:
+    """The bounds of the blocks of ``n`` trajectories: ceil(n / BLOCK) blocks of sizes differing by at most one."""
+    count = -(-n // BLOCK)
+    return np.linspace(0, n, count + 1).round().astype(int).tolist()
+
+
+def worker_pool(workers: int) -> Executor:
+    """A pool of ``workers`` processes for ``simulate_split`` (started by spawning: no fork of a process whose
+    torch threads are running)."""
+    import multiprocessing
+
+    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+
+
+def _simulate_block(config, x: np.ndarray, v: np.ndarray, frames: int, threads: int):
+    """In a worker process: the task rebuilt from its config, ``frames`` frames from the states (x, v) as arrays."""
+    torch.set_num_threads(threads)
+    task = build_task(config)
+    x, v, c = _simulate(task, State(torch.from_numpy(x), torch.from_numpy(v)), frames, None)
+    return x.numpy(), v.numpy(), c.numpy()
+
+
+def _simulate(
+    task: Task, state: State, frames: int, bar: tqdm | None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``frames`` frames from ``state`` (frame 0), in segments only to move ``bar`` (by this block's trajectories)."""
+    sim = simulator_for(task)
+    n, start = state.batch, bar.n if bar is not None else 0
+    xs, vs, cs = [state.x[:, None]], [state.v[:, None]], [torch.zeros(n, 1, dtype=torch.bool)]
+    with torch.no_grad():
         done = 1
         while done < frames:
             k = min(_SEGMENT, frames - done)
@@ -70,7 +141,8 @@ def simulate_split(
             cs.append(c[:, 1:])
             state = State(x[:, -1], v[:, -1])
             done += k
-            bar.update(n * (done - 1) // (frames - 1) - bar.n)  # (integers: a float sum overshoots total)
+            if bar is not None:  # (integers: a float sum overshoots total)
+                bar.update(start + n * (done - 1) // (frames - 1) - bar.n)
     return torch.cat(xs, 1), torch.cat(vs, 1), torch.cat(cs, 1)
 
 
@@ -84,9 +156,12 @@ def make_split(
     noise: float = 0.0,
     progress: bool = True,
     label: str = "",
+    workers: int = 1,
+    pool: Executor | None = None,
 ) -> dict[str, np.ndarray]:
-    """The arrays of one split (names and shapes in :mod:`diffcontact.data.store`)."""
-    x, v, contact = simulate_split(task, n, seed, frames, progress, label)
+    """The arrays of one split (names and shapes in :mod:`diffcontact.data.store`), simulated in ``workers``
+    processes (of ``pool``; the same arrays for any number: ``simulate_split``)."""
+    x, v, contact = simulate_split(task, n, seed, frames, progress, label, workers, pool)
     starts, chunk_cld = select_chunks(
         contact, chunk_len, torch.Generator().manual_seed(child_seed(seed, _CHUNK_STREAM)), p_collision
     )
@@ -141,11 +216,15 @@ def generate_dataset(
     force: bool = False,
     progress: bool = True,
     echo: Callable[[str], None] | None = print,
+    workers: int = 1,
 ) -> dict[str, Any]:
     """Generate (or reuse) ``<out>/<task>/``: train/val/test trajectories of ``frames`` frames (default: the
     task's), each split from its own seed, one chunk of ``chunk_len`` frames per trajectory, noise ``noise``
-    on the chunks. Skipped (and the metadata returned with ``skipped = True``) if an identical, valid dataset
-    exists, unless ``force``. ``echo`` receives one summary line per split (None: silent)."""
+    on the chunks, simulated in ``workers`` processes (the same bytes for any number).  Skipped (and the metadata
+    returned with ``skipped = True``) if an identical dataset exists that loads (metadata, checksums), unless
+    ``force``; a complete dataset of another request (other sizes, seeds, ...) is replaced only with ``force``
+    (ConfigError otherwise).  The folder is locked while it is written (``diffcontact.lock``: LockError if another
+    process writes it).  ``echo`` receives one summary line per split (None: silent)."""
     task = task if isinstance(task, Task) else build_task(task)
     sizes = {
         "train": _check_int("n_train", n_train, 1),
@@ -166,17 +245,64 @@ def generate_dataset(
     check_array_size(f"{max(sizes.values())} trajectories x {frames} frames of {task.config.name}",
                      2 * max(sizes.values()) * frames * coords)  # fmt: skip
     request = _request(task, sizes, seed_map, frames, chunk_len, p_collision, noise)
+    workers = _check_int("workers", workers, 1)
     folder = Path(out) / task.config.name
+    with output_lock(folder):
+        return _generate_into(folder, task, request, sizes, seed_map, frames, chunk_len, p_collision, noise,
+                              force, progress, echo, workers)  # fmt: skip
+
+
+def _differences(old: dict, new: dict, prefix: str = "") -> str:
+    """The entries that differ between two requests, as "sizes.train 800 -> 16, ..." (the config by name only)."""
+    out = []
+    for key in sorted({*old, *new}):
+        a, b = old.get(key), new.get(key)
+        if a == b:
+            continue
+        if key == "config":
+            out.append(f"{prefix}config (the task file changed)")
+        elif isinstance(a, dict) and isinstance(b, dict):
+            out.append(_differences(a, b, f"{prefix}{key}."))
+        else:
+            out.append(f"{prefix}{key} {a!r} -> {b!r}")
+    return ", ".join(out)
+
+
+def _generate_into(
+    folder: Path,
+    task: Task,
+    request,
+    sizes,
+    seed_map,
+    frames,
+    chunk_len,
+    p_collision,
+    noise,
+    force,
+    progress,
+    echo,
+    workers,
+) -> dict[str, Any]:
+    """generate_dataset's work, under the folder's lock."""
     if not force and (folder / "meta.json").is_file():
         try:
             meta = load_meta(folder)
-            if meta.get("request") == request:
-                meta = verify_dataset(folder, task.config)
+        except DatasetError:
+            meta = None  # (incomplete or unreadable: regenerated)
+        if meta is not None and meta["request"] != request:
+            raise ConfigError(
+                f"{folder} holds a dataset of another request ({_differences(meta['request'], request)}); replace it "
+                "with --force (force=True), or generate into another --out"
+            )
+        try:
+            if meta is not None:
+                for split in SPLITS:  # (as strong as loading: config, checksum, the arrays as recorded)
+                    load_split(folder, split, task.config)
                 if echo:
                     echo(f"{task.config.name}: an identical, valid dataset exists in {folder}; skipped")
                 return {**meta, "skipped": True}
         except DatasetError:
-            pass  # invalid or different: regenerate
+            pass  # invalid: regenerated
     remove_stale(folder)
     folder.mkdir(parents=True, exist_ok=True)
     meta: dict[str, Any] = {
@@ -184,35 +310,44 @@ def generate_dataset(
         "request": request,
         "config_text": task.config.source,
         "versions": versions(),
+        "simulation_block": BLOCK,  # (trajectories simulated in one batch at most: simulate_split)
         "splits": {},
     }
-    for split in SPLITS:
-        t0 = time.perf_counter()
-        n, seed = sizes[split], seed_map[split]
-        arrays = make_split(
-            task, n, seed, frames, chunk_len, p_collision, noise, progress, f"{task.config.name} {split}"
-        )
-        digest = save_arrays(folder / f"{split}.npz", arrays)
-        seconds = time.perf_counter() - t0
-        traj_cld = int(arrays["contact"].any(1).sum())
-        chunk_cld = int(arrays["chunk_collision"].sum())
-        meta["splits"][split] = {
-            "file": f"{split}.npz",
-            "sha256": digest,
-            "n": n,
-            "seed": seed,
-            "chunk_seed": child_seed(seed, _CHUNK_STREAM),
-            "noise_seed": child_seed(seed, _NOISE_STREAM) if noise > 0 else None,
-            "arrays": describe(arrays),
-            "trajectories_with_collision": traj_cld,
-            "chunks_with_collision": chunk_cld,
-            "collision_frames": int(arrays["contact"].sum()),
-            "seconds": round(seconds, 3),
-        }
-        if echo:
-            echo(
-                f"{task.config.name} {split}: {n} trajectories x {frames} frames, {traj_cld} with a collision; "
-                f"{n} chunks of {chunk_len}, {chunk_cld} with a collision ({chunk_cld / n:.1%}); {seconds:.1f} s"
-            )
+    with worker_pool(workers) if workers > 1 else nullcontext() as pool:
+        for split in SPLITS:
+            _write_split(folder, meta, task, split, sizes[split], seed_map[split], frames, chunk_len, p_collision,
+                         noise, progress, echo, workers, pool)  # fmt: skip
     save_meta(folder, meta)
     return {**meta, "skipped": False}
+
+
+def _write_split(
+    folder, meta, task, split, n, seed, frames, chunk_len, p_collision, noise, progress, echo, workers, pool
+) -> None:
+    """Simulate one split, write its file and record it in ``meta``."""
+    t0 = time.perf_counter()
+    arrays = make_split(
+        task, n, seed, frames, chunk_len, p_collision, noise, progress, f"{task.config.name} {split}", workers, pool
+    )
+    digest = save_arrays(folder / f"{split}.npz", arrays)
+    seconds = time.perf_counter() - t0
+    traj_cld = int(arrays["contact"].any(1).sum())
+    chunk_cld = int(arrays["chunk_collision"].sum())
+    meta["splits"][split] = {
+        "file": f"{split}.npz",
+        "sha256": digest,
+        "n": n,
+        "seed": seed,
+        "chunk_seed": child_seed(seed, _CHUNK_STREAM),
+        "noise_seed": child_seed(seed, _NOISE_STREAM) if noise > 0 else None,
+        "arrays": describe(arrays),
+        "trajectories_with_collision": traj_cld,
+        "chunks_with_collision": chunk_cld,
+        "collision_frames": int(arrays["contact"].sum()),
+        "seconds": round(seconds, 3),
+    }
+    if echo:
+        echo(
+            f"{task.config.name} {split}: {n} trajectories x {frames} frames, {traj_cld} with a collision; "
+            f"{n} chunks of {chunk_len}, {chunk_cld} with a collision ({chunk_cld / n:.1%}); {seconds:.1f} s"
+        )

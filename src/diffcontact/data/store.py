@@ -76,19 +76,40 @@ def sha256(path: str | Path) -> str:
 
 
 def atomic_write(path: Path, write) -> None:
-    """Write through ``write(fh)`` into a temporary file next to ``path``, fsync, then rename onto ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", dir=path.parent)
+    """Write through ``write(fh)`` into a temporary file next to ``path``, fsync, then rename onto ``path``; an
+    OSError (a full disk, ...) leaves no file behind and is raised again naming ``path``."""
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", dir=path.parent)
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual permissions
         os.replace(tmp, path)
+    except OSError as err:  # (disk full, read-only, ...: the error names the file; OSError(errno) keeps its subclass)
+        raise OSError(err.errno, f"cannot write {path}: {err.strerror or err}") from err
     finally:
-        if os.path.exists(tmp):
+        if tmp is not None and os.path.exists(tmp):
             os.remove(tmp)
+
+
+def check_output(path: str | Path, field: str, folder: bool = False) -> Path:
+    """ConfigError unless ``path`` can be written: a file (or with ``folder`` a directory) that is not the other
+    kind, below a writable directory (missing folders are made when it is written)."""
+    path = Path(path)
+    if path.exists() and path.is_dir() != folder:
+        raise ConfigError(f"{field} = {str(path)!r} is {'a file' if folder else 'a directory'}; give a "
+                          f"{'folder' if folder else 'file'} name")  # fmt: skip
+    parent = path.parent if not path.exists() else path
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{field} = {str(path)!r}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{field} = {str(path)!r}: the folder {parent} is not writable")
+    return path
 
 
 def _umask() -> int:
@@ -172,7 +193,37 @@ def load_meta(folder: str | Path) -> dict[str, Any]:
         raise DatasetError(f"{path} is not valid JSON: {err}") from err
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise DatasetError(f"{path}: format {meta.get('format') if isinstance(meta, dict) else None!r} != {FORMAT}")
+    _check_meta(meta, path)
     return meta
+
+
+# The entries of meta.json that loading reads, by table: a dataset whose metadata lacks one is incomplete.
+_REQUEST_KEYS = ("task", "config", "dt", "frames")
+_SPLIT_KEYS = ("file", "sha256", "arrays")
+
+
+def _check_meta(meta: dict[str, Any], path: Path) -> None:
+    """DatasetError naming the first entry of ``meta`` that loading needs and that is missing or malformed, or a
+    split ``file`` that is not a plain file name in the dataset's folder."""
+
+    def need(table: Any, keys, where: str) -> None:
+        if not isinstance(table, dict):
+            raise DatasetError(f"{path}: {where} is not a table; the dataset is incomplete, regenerate it")
+        for key in keys:
+            if key not in table:
+                raise DatasetError(f"{path}: {where} lacks {key!r}; the dataset is incomplete, regenerate it")
+
+    need(meta, ("request", "splits"), "the metadata")
+    need(meta["request"], _REQUEST_KEYS, "request")
+    need(meta["splits"], (), "splits")
+    for split, info in meta["splits"].items():
+        need(info, _SPLIT_KEYS, f"splits.{split}")
+        need(info["arrays"], ARRAYS, f"splits.{split}.arrays")
+        for key in ARRAYS:
+            need(info["arrays"][key], ("shape", "dtype"), f"splits.{split}.arrays.{key}")
+        name = info["file"]
+        if not isinstance(name, str) or name in ("", ".", "..") or Path(name).name != name or "\\" in name:
+            raise DatasetError(f"{path}: splits.{split}.file = {name!r} is not a file name in the dataset's folder")
 
 
 def config_json(config: TaskConfig) -> Any:
@@ -225,10 +276,14 @@ def verify_dataset(folder: str | Path, config: TaskConfig | None = None) -> dict
     return meta
 
 
-def load_split(folder: str | Path, split: str, config: TaskConfig | None = None, dtype=None) -> Split:
+def load_split(
+    folder: str | Path, split: str, config: TaskConfig | None = None, dtype=None, task: str | None = None
+) -> Split:
     """Load a verified split (checksum, config, array names, shapes, dtypes) as tensors, cast to ``dtype``
-    (floating arrays only; default: as stored, float64)."""
+    (floating arrays only; default: as stored, float64); ``task``: the task it must be of (DatasetError if not)."""
     meta = load_meta(folder)
+    if task is not None and meta["request"]["task"] != task:
+        raise DatasetError(f"{folder} holds a dataset of task {meta['request']['task']!r}, not {task!r}")
     check_config(meta, config, folder)
     path = verify_file(folder, split, meta)
     info = meta["splits"][split]

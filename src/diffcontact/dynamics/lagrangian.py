@@ -44,6 +44,12 @@ def constrained_acceleration(
     rhs = J @ a0.reshape(B, -1, 1) + Jdot @ v.reshape(B, -1, 1)
     L, info = torch.linalg.cholesky_ex(G)
     if bool((info != 0).any()):
+        bad = ~(torch.isfinite(x).flatten(1).all(1) & torch.isfinite(v).flatten(1).all(1))
+        if bool(bad.any()):  # (a NaN state makes G NaN: say so, not that the constraints are degenerate)
+            raise FloatingPointError(
+                f"constrained dynamics: non-finite position or velocity in {int(bad.sum())} batch elements "
+                f"(first: {int(bad.nonzero()[0])})"
+            )
         raise FloatingPointError(
             "constrained dynamics: J_E M⁻¹ J_Eᵀ is not positive definite "
             f"in {int((info != 0).sum())} batch elements (degenerate constraints)"

@@ -55,14 +55,22 @@ class SolverInfo:
         return int(self.failed.sum())
 
 
+#: The largest friction coefficient accepted: far beyond sticking (μ = 1e6 sticks wherever f_n > 0), and far below
+#: the μ (about 1e160) at which the scaled problem overflows and a failed element would come back as NaN.
+MU_MAX = 1e100
+
+
 def check_problem(A, q, mu, lower=None, active=None):
     """Validate shapes and values; returns (A, q, mu, lower, active, d) with defaults filled in.
 
-    A: (B, K·d, K·d); q: (B, K·d); mu: (B, K) ≥ 0; lower: (B, K) ≥ 0 or None; active: (B, K) bool or None.
+    A: (B, K·d, K·d); q: (B, K·d); mu: (B, K) in [0, MU_MAX]; lower: (B, K) ≥ 0 or None; active: (B, K) bool or
+    None; half-precision tensors are refused (their solutions overflow).
     """
     for name, t in (("A", A), ("q", q), ("mu", mu)):
         if not isinstance(t, torch.Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+        if t.dtype in (torch.float16, torch.bfloat16):
+            raise TypeError(f"{name} is {t.dtype}: the solver takes float32 or float64 (half precision overflows)")
     if A.dim() != 3 or A.shape[-1] != A.shape[-2]:
         raise ValueError(f"A must have shape (B, K*d, K*d), got {tuple(A.shape)}")
     B, n = A.shape[0], A.shape[-1]
@@ -92,6 +100,10 @@ def check_problem(A, q, mu, lower=None, active=None):
         if name in ("mu", "lower") and x.size and x.min() < 0:
             negative = torch.from_numpy((x < 0).any(-1))
             raise ValueError(f"{name} must be >= 0; negative in batch elements {_first(negative)}")
+        if name == "mu" and x.size and float(x.max()) > MU_MAX:
+            raise ValueError(
+                f"mu must be <= {MU_MAX:g}; larger in batch elements {_first(torch.from_numpy(x > MU_MAX).any(-1))}"
+            )
     return A, q, mu, lower, active, d
 
 
@@ -138,6 +150,10 @@ def solve_cone_qp(
     """
     if on_failure not in ("raise", "count"):
         raise ValueError(f"on_failure must be 'raise' or 'count', got {on_failure!r}")
+    if not (0 < tol <= acceptable_tol < 1):  # (False for NaN)
+        raise ValueError(f"tol = {tol!r}, acceptable_tol = {acceptable_tol!r}: need 0 < tol <= acceptable_tol < 1")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter = {max_iter!r} is not an integer >= 1")
     device = A.device if isinstance(A, torch.Tensor) else torch.device("cpu")
     if device.type != "cpu":
         A, q, mu, lower, active = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (A, q, mu, lower, active))

@@ -2,12 +2,18 @@
 
 L1 loss on the predicted chunk (positions and velocities of every point, frame 0 included as published), AdamW
 (lr 1e-3, weight decay 1e-4).  Optimisation is manual so that a step whose gradients are not finite is skipped
-entirely (no update, no weight decay, no moment update) and counted.  Logged per epoch: losses, learned μ and e
-(summary), learned mass ratios, skipped steps and contact-solver failures.
+entirely (no update, no weight decay, no moment update) and counted; so is a step whose forward pass fails on a
+non-finite state (a diverging learned model), with a warning.  Logged per epoch: losses, learned μ and e (summary),
+learned mass ratios, skipped steps and contact-solver failures.
+
+On several processes (DDP) gradients are averaged over them, so a step is skipped on all or none: a process whose
+forward pass failed contributes NaN gradients.  Skipped steps are therefore the same on every process; forward and
+solver failures are each process's own and are summed over the processes (``totals``).
 """
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 
 import lightning.pytorch as pl
@@ -15,10 +21,14 @@ import torch
 
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, build_model
-from diffcontact.solver import ContactSolver
+from diffcontact.solver import ContactSolver, Status
+from diffcontact.solver.status import is_failure
 from diffcontact.systems.registry import build_task
 
+log = logging.getLogger(__name__)
+
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
+_FAILED = [s.name for s in Status if is_failure(s)]  # (the statuses counted as solver failures)
 TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
 
 
@@ -54,7 +64,8 @@ class ContactLightningModule(pl.LightningModule):
         self.task = build_task(task)
         self.solver = ContactSolver(on_failure="count")  # (continues with zero impulses, counts and logs failures)
         self._failures_before: Counter[str] = Counter()  # (restored from a checkpoint)
-        self.skipped_steps = 0
+        self.skipped_steps = 0  # (optimiser steps skipped: the same on every process)
+        self.forward_failures = 0  # (this process's)
         net = build_model(
             self.task,
             model,
@@ -82,8 +93,26 @@ class ContactLightningModule(pl.LightningModule):
 
     @property
     def solver_failures(self) -> int:
-        """Contact problems the solver failed on so far (impulses replaced by zeros)."""
+        """Contact problems the solver failed on so far in this process (impulses replaced by zeros)."""
         return sum(self.solver_failures_by_status.values())
+
+    def totals(self) -> dict:
+        """The counters of the run, summed over its processes (a collective call on several: every process calls it):
+        skipped_steps, forward_failures, solver_failures and solver_failures_by_status."""
+        names = [*_FAILED, "unknown"]  # (the same on every process; "unknown": counts of old checkpoints)
+        local = torch.tensor(
+            [self.forward_failures, *(self.solver_failures_by_status[n] for n in names)], dtype=torch.float64
+        )
+        summed = local
+        if self._trainer is not None and self.trainer.world_size > 1:
+            summed = self.trainer.strategy.reduce(local.to(self.device), reduce_op="sum").cpu()
+        by_status = {n: int(c) for n, c in zip(names, summed[1:].tolist()) if c}
+        return dict(
+            skipped_steps=self.skipped_steps,
+            forward_failures=int(summed[0]),
+            solver_failures=sum(by_status.values()),
+            solver_failures_by_status=by_status,
+        )
 
     def loss(self, batch, kind: str | None = None) -> torch.Tensor:
         """Mean absolute (``kind`` "l1") or squared ("mse") error of the predicted chunk: x, v (B, L, P, d); a
@@ -99,7 +128,13 @@ class ContactLightningModule(pl.LightningModule):
 
     def training_step(self, batch, batch_idx: int):
         opt = self.optimizers()
-        loss = self.loss(batch)
+        try:
+            loss = self.loss(batch)
+            failed = None
+        except FloatingPointError as err:  # (a non-finite state in the forward pass: this step is skipped)
+            self.forward_failures += 1
+            failed = err
+            loss = float("nan") * sum(p.sum() for p in self.net.parameters())  # (NaN gradients: skipped everywhere)
         opt.zero_grad()
         self.manual_backward(loss)
         grads = [p.grad for p in self.net.parameters() if p.grad is not None]
@@ -110,31 +145,47 @@ class ContactLightningModule(pl.LightningModule):
         else:  # skipped entirely: no update, no weight decay
             self.skipped_steps += 1
             opt.zero_grad()
-        self.log("train/loss", loss.detach(), prog_bar=True, on_step=False, on_epoch=True, batch_size=batch[0].shape[0])
+            why = f"its forward pass failed ({failed})" if failed else "its loss or gradients are not finite"
+            log.warning("epoch %d batch %d: training step skipped: %s", self.current_epoch, batch_idx, why)
+        # (logged by every step, so that the processes of a DDP run average the same metric: a failed step with
+        # weight 0, which leaves the epoch's mean to the others)
+        value, n = (loss.detach(), len(batch[0])) if failed is None else (torch.zeros(()), 0)
+        self.log("train/loss", value, prog_bar=True, on_step=False, on_epoch=True, batch_size=n, sync_dist=True)
         return loss.detach()
 
     def validation_step(self, batch, batch_idx: int):
-        loss = self.loss(batch)
-        self.log("val/loss", loss, prog_bar=True, on_epoch=True, batch_size=batch[0].shape[0])
+        try:
+            loss = self.loss(batch)
+        except FloatingPointError as err:  # (a diverging model: the worst loss, not a crash)
+            self.forward_failures += 1
+            log.warning(
+                "epoch %d validation batch %d: forward pass failed (%s); loss inf", self.current_epoch, batch_idx, err
+            )
+            loss = torch.tensor(float("inf"))
+        self.log("val/loss", loss, prog_bar=True, on_epoch=True, batch_size=batch[0].shape[0], sync_dist=True)
         return loss
 
     def on_train_epoch_end(self) -> None:
-        self.log("train/lr", self.optimizers().param_groups[0]["lr"])  # (the rate this epoch used)
+        # (the values below are the same on every process of a DDP run: sync_dist averages equal values)
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"], sync_dist=True)  # (the rate this epoch used)
         if self.hparams.schedule != "constant":  # (manual optimisation: the schedule is stepped here)
             self.lr_schedulers().step()
         p = self.learned
         if self.learns_contacts:
             means = {"learned/mu_mean": p.mu.detach().mean(), "learned/e_mean": p.e.detach().mean()}
-            self.log_dict(means, prog_bar=True)
+            self.log_dict(means, prog_bar=True, sync_dist=True)
+        totals = self.totals()
         self.log_dict(
             {
-                "train/skipped_steps": float(self.skipped_steps),
-                "train/solver_failures": float(self.solver_failures),
-            }
+                "train/skipped_steps": float(totals["skipped_steps"]),
+                "train/forward_failures": float(totals["forward_failures"]),
+                "train/solver_failures": float(totals["solver_failures"]),
+            },
+            sync_dist=True,  # (already summed over the processes)
         )
         if p is not None:
             for i, r in enumerate(self.mass_ratio().tolist()):
-                self.log(f"learned/mass_ratio_{i}", r)
+                self.log(f"learned/mass_ratio_{i}", r, sync_dist=True)
 
     def mass_ratio(self) -> torch.Tensor:
         """Learned masses divided by the first body's: (n_bodies,)."""
@@ -162,15 +213,17 @@ class ContactLightningModule(pl.LightningModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": cosine, "interval": "epoch"}}
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
+        totals = self.totals()  # (every process writes its checkpoint dictionary; rank 0 its file)
         checkpoint["counters"] = {
-            "skipped_steps": self.skipped_steps,
-            "solver_failures_by_status": dict(self.solver_failures_by_status),
+            k: totals[k] for k in ("skipped_steps", "forward_failures", "solver_failures_by_status")
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         counters = checkpoint.get("counters", {})
         self.skipped_steps = counters.get("skipped_steps", 0)
-        # (checkpoints before the count by status hold the total only)
+        # (the run's totals continue on rank 0; checkpoints before the count by status hold the total only)
+        first = self._trainer is None or self.global_rank == 0
         old = {"unknown": counters["solver_failures"]} if counters.get("solver_failures") else {}
-        self._failures_before = Counter(counters.get("solver_failures_by_status", old))
+        self.forward_failures = counters.get("forward_failures", 0) if first else 0
+        self._failures_before = Counter(counters.get("solver_failures_by_status", old) if first else {})
         self.solver.reset()

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import json
+import os
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import lightning.pytorch as pl
 import torch
 
 from diffcontact.config import load_task
-from diffcontact.data.store import save_figure, versions, write_json
+from diffcontact.data.store import TMP_PREFIX, atomic_write, save_figure, versions, write_json
 from diffcontact.errors import ConfigError
+from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule
@@ -137,6 +140,16 @@ class _RunCheckpoint(pl.callbacks.ModelCheckpoint):
         super().load_state_dict(state_dict)
 
 
+class _AtomicCheckpointIO(pl.plugins.TorchCheckpointIO):
+    """Checkpoints written through ``data.store.atomic_write`` (a temporary file in the checkpoint folder, fsync,
+    rename): a process killed while one is written leaves the previous one whole.  Lightning's own write goes
+    through a temporary file in the system's temporary folder, moved by a copy when that is another file system,
+    and leaves it behind when killed."""
+
+    def save_checkpoint(self, checkpoint: dict, path, storage_options=None) -> None:
+        atomic_write(Path(path), lambda fh: torch.save(checkpoint, fh))
+
+
 class _ShuffleState(pl.Callback):
     """Keeps the state of the training data loader's random generator (the batch order) in the checkpoints, so that
     a resumed run draws the batches an uninterrupted run would (the loader's generator restarts from the seed)."""
@@ -166,8 +179,9 @@ class _ShuffleState(pl.Callback):
 # The settings a run records in config.json ("args") that a resumed run must keep (epochs may grow).
 RUN_SETTINGS = (
     "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "reg",
-    "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss",
+    "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
 )  # fmt: skip
+ACCELERATORS = ("cpu", "gpu", "auto")
 
 
 def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
@@ -175,16 +189,20 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     ConfigError if the run has no checkpoint or config, if a ``given`` setting (not None) differs from the
     recorded one, or if ``epochs`` is fewer than the epochs already trained."""
     last = run / "checkpoints" / "last.ckpt"
-    if not last.is_file():
+    if not last.is_file() and not (run / "config.json").is_file():
         raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
     try:
         recorded = json.loads((run / "config.json").read_text())["args"]
-        checkpoint = torch.load(last, map_location="cpu", weights_only=False)
-        done = int(checkpoint["epoch"]) + 1
-        trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
+        done, trained = 0, {}  # (a run stopped before its first checkpoint starts again)
+        if last.is_file():
+            checkpoint = torch.load(last, map_location="cpu", weights_only=False)
+            done = int(checkpoint["epoch"]) + 1
+            trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
     except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
         raise ConfigError(f"--resume: {run} is not a readable training run (config.json, {last.name}): {err}") from err
     recorded.setdefault("train_loss", "l1")  # (runs from before the setting existed trained on L1)
+    recorded.setdefault("devices", 1)  # (and on one process)
+    recorded.setdefault("num_nodes", 1)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
         raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
@@ -211,6 +229,37 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     return {**recorded, "epochs": epochs}
 
 
+def _check_numbers(settings: dict, **more) -> None:
+    """ConfigError naming the first training setting out of its domain: lr, coef_lr, mu_coef_lr finite > 0;
+    weight_decay, reg finite >= 0; batch_size an integer >= 1 (None: not given)."""
+    import math
+
+    for key, value in {**settings, **more}.items():
+        if value is None or key not in ("lr", "coef_lr", "mu_coef_lr", "weight_decay", "reg", "batch_size"):
+            continue
+        if key == "batch_size":
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"batch_size = {value!r} is not an integer >= 1")
+            continue
+        positive = key in ("lr", "coef_lr", "mu_coef_lr")
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not math.isfinite(value)
+            or value < 0
+            or (positive and value == 0)
+        ):
+            raise ConfigError(f"{key} = {value!r} is not a finite number {'> 0' if positive else '>= 0'}")
+
+
+def _rank(devices: int) -> int:
+    """The global rank of this process in a multi-process run (0 if there is none): torchrun's RANK, or from
+    Lightning's launcher the node's rank and the local one."""
+    if "RANK" in os.environ:
+        return int(os.environ["RANK"])
+    return int(os.environ.get("NODE_RANK", 0)) * devices + int(os.environ.get("LOCAL_RANK", 0))
+
+
 def train_run(
     task: str,
     model: str | None = None,
@@ -231,6 +280,9 @@ def train_run(
     reg: float | None = None,
     train_loss: str | None = None,
     dtype: str | None = None,
+    devices: int | None = None,
+    num_nodes: int | None = None,
+    accelerator: str = "cpu",
     resume: bool = False,
     progress: bool = True,
 ) -> dict:
@@ -247,9 +299,21 @@ def train_run(
     every epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  A directory that
     already holds checkpoints is refused unless ``resume``, which continues from checkpoints/last.ckpt with the
     run's recorded settings: a setting given here must equal the recorded one (``epochs`` may grow with a constant
-    schedule); the result is the same as a run that was not interrupted.
-    Returns the learned summary.
+    schedule); the result is the same as a run that was not interrupted, also after a SIGKILL at any moment
+    (checkpoints are written atomically; a run stopped before its first checkpoint starts again from its config).
+    ``devices`` processes on each of ``num_nodes`` machines (default 1 and 1; recorded, as the batch) train with
+    Lightning's DDP strategy (gloo on CPUs, NCCL on GPUs; ``accelerator`` "cpu", "gpu" or "auto"): ``batch_size``
+    is the batch of each process, the effective batch is batch_size × devices × num_nodes, and the learning rate is
+    not scaled with it (all three are logged and recorded in config.json).  Only the first process writes the
+    files; the counters are summed over the processes (``ContactLightningModule.totals``).  docs/scaling.md.
+
+    Returns the learned summary (on the other processes of a DDP run: the same, not written).
     """
+    if accelerator not in ACCELERATORS:
+        raise ConfigError(f"accelerator = {accelerator!r} is not one of {list(ACCELERATORS)}")
+    for key, value in (("devices", devices), ("num_nodes", num_nodes)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
     config = load_task(task)  # (a packaged task's name or a task file's path, recorded as found from anywhere)
     task = config.ref
     run = (
@@ -257,120 +321,165 @@ def train_run(
         if out
         else Path("runs") / config.name / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
     )
-    ckpt_dir = run / "checkpoints"
-    last = ckpt_dir / "last.ckpt"
-    if resume:
-        given = dict(
-            task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
-            coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, reg=reg, weight_decay=weight_decay, mu_transform=mu_transform,
-            e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss,
-        )  # fmt: skip
-        args = _resume_settings(run, given, epochs)
-    else:
-        if ckpt_dir.is_dir() and any(ckpt_dir.glob("*.ckpt")):
-            raise ConfigError(
-                f"{ckpt_dir} already holds the checkpoints of a run: continue it with --resume, or train into another "
-                "--out (or delete that run)"
+    first = _rank(devices or 1) == 0  # (the process that writes: the only one before a DDP launch)
+    with output_lock(run) if first else nullcontext():  # (one command at a time writes a run)
+        ckpt_dir = run / "checkpoints"
+        last = ckpt_dir / "last.ckpt"
+        if resume:
+            given = dict(
+                task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
+                coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, reg=reg, weight_decay=weight_decay, mu_transform=mu_transform,
+                e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
+                num_nodes=num_nodes,
+            )  # fmt: skip
+            args = _resume_settings(run, given, epochs)
+        else:
+            if ckpt_dir.is_dir() and any(ckpt_dir.glob("*.ckpt")):
+                raise ConfigError(
+                    f"{ckpt_dir} already holds the checkpoints of a run: continue it with --resume, or train into "
+                    "another --out (or delete that run)"
+                )
+            model, preset = model or "CM-CD-CLNN", preset or "default"
+            if model not in MODEL_NAMES and model not in BASELINE_NAMES:
+                raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
+            if train_loss not in (None, *TRAIN_LOSSES):
+                raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
+            own = task_training(task)
+            settings = resolve_preset(
+                preset,
+                own,
+                epochs=epochs,
+                lr=lr,
+                schedule=schedule,
+                batch_size=batch_size,
+                mu_transform=mu_transform,
+                e_transform=e_transform,
+                coef_lr=coef_lr,
+                mu_coef_lr=mu_coef_lr,
             )
-        model, preset = model or "CM-CD-CLNN", preset or "default"
-        if model not in MODEL_NAMES and model not in BASELINE_NAMES:
-            raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
-        if train_loss not in (None, *TRAIN_LOSSES):
-            raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
-        own = task_training(task)
-        settings = resolve_preset(
-            preset,
-            own,
-            epochs=epochs,
-            lr=lr,
-            schedule=schedule,
-            batch_size=batch_size,
-            mu_transform=mu_transform,
-            e_transform=e_transform,
-            coef_lr=coef_lr,
-            mu_coef_lr=mu_coef_lr,
+            if settings["epochs"] < 1:
+                raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
+            _check_numbers(settings, weight_decay=weight_decay, reg=reg)
+            args = dict(
+                task=task,
+                model=model,
+                preset=preset,
+                epochs=settings["epochs"],
+                seed=0 if seed is None else seed,
+                batch_size=settings["batch_size"],
+                lr=settings["lr"],
+                schedule=settings["schedule"],
+                coef_lr=settings["coef_lr"],
+                mu_coef_lr=settings["mu_coef_lr"],
+                reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
+                weight_decay=1e-4 if weight_decay is None else weight_decay,
+                train_loss=train_loss or "l1",
+                mu_transform=settings["mu_transform"],
+                e_transform=settings["e_transform"],
+                dtype=dtype or "float32",
+                data_root=str("data" if data_root is None else data_root),
+                task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
+                devices=devices or 1,
+                num_nodes=num_nodes or 1,
+            )
+        processes = args["devices"] * args["num_nodes"]
+        parallel = dict(
+            processes=processes,
+            accelerator=accelerator,
+            strategy="ddp" if processes > 1 else "single process",
+            batch_per_process=args["batch_size"],
+            effective_batch=args["batch_size"] * processes,
+            lr=args["lr"],
+            lr_scaling="none (the learning rate is not scaled with the effective batch)",
         )
-        if settings["epochs"] < 1:
-            raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
-        args = dict(
-            task=task,
-            model=model,
-            preset=preset,
-            epochs=settings["epochs"],
-            seed=0 if seed is None else seed,
-            batch_size=settings["batch_size"],
-            lr=settings["lr"],
-            schedule=settings["schedule"],
-            coef_lr=settings["coef_lr"],
-            mu_coef_lr=settings["mu_coef_lr"],
-            reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
-            weight_decay=1e-4 if weight_decay is None else weight_decay,
-            train_loss=train_loss or "l1",
-            mu_transform=settings["mu_transform"],
-            e_transform=settings["e_transform"],
-            dtype=dtype or "float32",
-            data_root=str("data" if data_root is None else data_root),
-            task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
+        if first:
+            run.mkdir(parents=True, exist_ok=True)
+            write_json(
+                run / "config.json",
+                {"args": args, "versions": versions(lightning=pl.__version__), "parallel": parallel},
+            )
+        pl.utilities.rank_zero_info(
+            f"training on {processes} process(es) ({args['devices']} device(s) x {args['num_nodes']} node(s), "
+            f"{accelerator}): batch {args['batch_size']} per process, effective batch {parallel['effective_batch']}, "
+            f"learning rate {args['lr']:g} (not scaled)"
         )
-    run.mkdir(parents=True, exist_ok=True)
-    write_json(run / "config.json", {"args": args, "versions": versions(lightning=pl.__version__)})
-    task, model, seed, dtype = args["task"], args["model"], args["seed"], args["dtype"]
+        task, model, seed, dtype = args["task"], args["model"], args["seed"], args["dtype"]
 
-    started = time.perf_counter()
-    pl.seed_everything(seed, workers=True)
-    mode = "pairs" if model in BASELINE_NAMES else "chunks"  # (the baselines train on one-step pairs)
-    data = ContactDataModule(
-        task, root=args["data_root"], batch_size=args["batch_size"], mode=mode, dtype=getattr(torch, dtype), seed=seed
-    )
-    module = ContactLightningModule(
-        task,
-        model,
-        seed=seed,
-        dtype=dtype,
-        reg=args["reg"] if model in MODEL_NAMES and MODEL_NAMES[model][1] else None,  # (CM models, baselines: none)
-        train_loss=args["train_loss"],
-        **{
-            k: args[k]
-            for k in ("lr", "weight_decay", "mu_transform", "e_transform", "schedule", "coef_lr", "mu_coef_lr")
-        },
-    )
-    loggers = [pl.loggers.CSVLogger(run / "logs", name="csv"), pl.loggers.TensorBoardLogger(run / "logs", name="tb")]
-    checkpoints = _RunCheckpoint(
-        dirpath=ckpt_dir,
-        filename="best-{epoch}",
-        monitor="val/loss",
-        mode="min",
-        save_top_k=1,
-        save_last=True,
-        every_n_epochs=1,
-        enable_version_counter=False,  # (one last.ckpt, always the newest)
-    )
-    trainer = pl.Trainer(
-        max_epochs=args["epochs"],
-        logger=loggers,
-        callbacks=[checkpoints, _ShuffleState()],
-        enable_progress_bar=progress,
-        deterministic=True,
-        log_every_n_steps=1,
-        enable_model_summary=False,
-        num_sanity_val_steps=0 if resume else 2,  # (as the uninterrupted run: its counters include it once)
-    )
-    trainer.fit(module, datamodule=data, ckpt_path=str(last) if resume else None)
-    best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
-    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
-    # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
-    train = data.splits["train"]
-    summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
-    summary["best_checkpoint"] = best
-    summary["epochs_trained"] = int(trainer.current_epoch)
-    summary["skipped_steps"] = module.skipped_steps
-    summary["solver_failures"] = module.solver_failures
-    summary["solver_failures_by_status"] = dict(module.solver_failures_by_status)
-    summary["wall_time_s"] = time.perf_counter() - started
-    summary["run_dir"] = str(run)
-    write_json(run / "learned.json", summary)
-    plot_losses(run / "logs" / "csv", run / "loss.png")
-    return summary
+        started = time.perf_counter()
+        pl.seed_everything(seed, workers=True)
+        mode = "pairs" if model in BASELINE_NAMES else "chunks"  # (the baselines train on one-step pairs)
+        data = ContactDataModule(
+            task,
+            root=args["data_root"],
+            batch_size=args["batch_size"],
+            mode=mode,
+            dtype=getattr(torch, dtype),
+            seed=seed,
+        )
+        module = ContactLightningModule(
+            task,
+            model,
+            seed=seed,
+            dtype=dtype,
+            reg=args["reg"] if model in MODEL_NAMES and MODEL_NAMES[model][1] else None,  # (CM models, baselines: none)
+            train_loss=args["train_loss"],
+            **{
+                k: args[k]
+                for k in ("lr", "weight_decay", "mu_transform", "e_transform", "schedule", "coef_lr", "mu_coef_lr")
+            },
+        )
+        loggers = [
+            pl.loggers.CSVLogger(run / "logs", name="csv"),
+            pl.loggers.TensorBoardLogger(run / "logs", name="tb"),
+        ]
+        checkpoints = _RunCheckpoint(
+            dirpath=ckpt_dir,
+            filename="best-{epoch}",
+            monitor="val/loss",
+            mode="min",
+            save_top_k=1,
+            save_last=True,
+            every_n_epochs=1,
+            enable_version_counter=False,  # (one last.ckpt, always the newest)
+        )
+        for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
+            tmp.unlink(missing_ok=True)
+        start = last if resume and last.is_file() else None
+        trainer = pl.Trainer(
+            max_epochs=args["epochs"],
+            plugins=[_AtomicCheckpointIO()],
+            logger=loggers,
+            callbacks=[checkpoints, _ShuffleState()],
+            enable_progress_bar=progress,
+            deterministic=True,
+            log_every_n_steps=1,
+            enable_model_summary=False,
+            num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
+            accelerator=accelerator,
+            devices=args["devices"],
+            num_nodes=args["num_nodes"],
+            strategy=pl.strategies.DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
+        )
+        trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
+        totals = module.totals()  # (summed over the processes: every process calls it)
+        best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
+        if trainer.world_size > 1:
+            best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
+        chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
+        # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
+        train = data.splits["train"]
+        summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
+        summary["best_checkpoint"] = best
+        summary["epochs_trained"] = int(trainer.current_epoch)
+        summary.update(totals)
+        summary["processes"] = processes
+        summary["rank"] = trainer.global_rank  # (0: the process that wrote the files)
+        summary["wall_time_s"] = time.perf_counter() - started
+        summary["run_dir"] = str(run)
+        if trainer.is_global_zero:
+            write_json(run / "learned.json", summary)
+            plot_losses(run / "logs" / "csv", run / "loss.png")
+        return summary
 
 
 def summarize_run(run: str | Path) -> dict:
