@@ -47,7 +47,7 @@ class ContactDataModule(pl.LightningDataModule):
         """Load and verify (checksum, config) every split once."""
         for name in SPLITS:
             if name not in self.splits:
-                self.splits[name] = load_split(self.folder, name, self.config, dtype=self.dtype)
+                self.splits[name] = load_split(self.folder, name, self.config, dtype=self.dtype, task=self.config.name)
 
     def _dataset(self, name: str):
         self.setup()
