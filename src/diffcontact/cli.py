@@ -14,6 +14,21 @@ app = typer.Typer(
 bench_app = typer.Typer(help="Benchmarks (medians and ratios measured in one run).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 
+THREADS = typer.Option(
+    None,
+    "--threads",
+    min=1,
+    help="Threads of torch, numba and the contact solver (default: the CPUs available to this process, from its "
+    "affinity and cgroup quota).",
+)
+
+
+def _threads(threads: int | None) -> int:
+    """Apply the --threads option (diffcontact.threads.set_threads); returns the number used."""
+    from diffcontact.threads import set_threads
+
+    return set_threads(threads)
+
 
 @bench_app.command("solver")
 def bench_solver(
@@ -26,9 +41,11 @@ def bench_solver(
         800, help="Time the reference on at most this many problems per setting (its cost is per problem)."
     ),
     seed: int = typer.Option(0, help="Seed of the random instances."),
+    threads: int = THREADS,
     out: str = typer.Option("", help="Also write the table as Markdown to this file."),
 ) -> None:
     """Forward+backward time per problem of the contact solver against the cvxpylayers reference."""
+    _threads(threads)
     from diffcontact.bench.solver import run_solver_benchmark
 
     run_solver_benchmark(
@@ -51,9 +68,11 @@ def simulate(
     seed: int = typer.Option(0, "--seed", help="Seed of the initial conditions."),
     out: str = typer.Option(..., "--out", help="Output .npz: x, v (N,T,P,d), t, energy, contact, config, meta."),
     gif: str = typer.Option("", "--gif", help="Also render trajectory 0 to this GIF."),
+    threads: int = THREADS,
     dynamics: str = typer.Option("lagrangian", help="lagrangian (x, v) or hamiltonian (x, p)."),
 ) -> None:
     """Simulate a task with its true parameters (exact contact model CM, float64)."""
+    _threads(threads)
     from diffcontact.simulator import simulate_task
 
     meta = simulate_task(task, n, steps or None, seed, out, gif or None, dynamics)
@@ -71,9 +90,11 @@ def generate(
     n_test: int = typer.Option(100, "--n-test", help="Test trajectories."),
     seeds: tuple[int, int, int] = typer.Option((0, 1, 2), "--seeds", help="Seeds of train, val and test."),
     force: bool = typer.Option(False, "--force", help="Regenerate even if an identical valid dataset exists."),
+    threads: int = THREADS,
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Generate train/val/test trajectories and 5-frame chunks of a task (CM, float64), with checksums."""
+    _threads(threads)
     import time
 
     from diffcontact.data.generate import generate_dataset
@@ -140,9 +161,11 @@ def train(
         help="Continue the run in --out from its last checkpoint, with its settings (config.json); options given must "
         "equal them (--epochs may grow with a constant schedule).",
     ),
+    threads: int = THREADS,
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Train a model on a task's chunks; writes checkpoints, logs and learned.json into the run directory."""
+    _threads(threads)
     from diffcontact.errors import ConfigError, DatasetError
     from diffcontact.train.run import train_run
 
@@ -198,9 +221,11 @@ def evaluate(
     data: str = typer.Option("", "--data", help="Dataset root (default: the one the run was trained from)."),
     task: str = typer.Option("", "--task", help="Refuse a run of any other task than this one."),
     frames: int = typer.Option(None, "--frames", help="Frames rolled out (default 70, or the split's if fewer)."),
+    threads: int = THREADS,
     pictures: bool = typer.Option(True, help="Also draw the rollout picture and GIF."),
 ) -> None:
     """Metrics (5-step error, error curve, true energy) of a run's best model against the exact model; figures."""
+    _threads(threads)
     from diffcontact.errors import DiffContactError
     from diffcontact.eval.evaluate import evaluate_run
 
@@ -225,6 +250,9 @@ def reproduce(
     quick: bool = typer.Option(False, "--quick", help="Tiny datasets and one epoch: the pipeline in minutes."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process with one thread each)."),
     data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick)."),
+    threads: int = typer.Option(
+        None, "--threads", min=1, help="Threads of each run (default: the CPUs available to this process / --jobs)."
+    ),
 ) -> None:
     """Train (or reuse) and evaluate every task x model x seed, then write OUT/report.md beside the published values.
 
@@ -233,10 +261,13 @@ def reproduce(
 
     from diffcontact.errors import ConfigError, DatasetError
     from diffcontact.eval.reproduce import reproduce as run_matrix
+    from diffcontact.threads import available_cpus
 
+    per_run = threads or max(1, available_cpus() // max(jobs, 1))
+    _threads(per_run)  # (this process generates the datasets; each run has its own process)
     try:
         run_matrix(
-            tasks, models, seeds, out, quick=quick, jobs=jobs, data=data or None, echo=typer.echo,
+            tasks, models, seeds, out, quick=quick, jobs=jobs, threads=per_run, data=data or None, echo=typer.echo,
             command=" ".join(["diffcontact", *sys.argv[1:]]),
         )  # fmt: skip
     except (ConfigError, DatasetError) as err:
@@ -248,9 +279,11 @@ def reproduce(
 def bench_near_psd(
     total: int = typer.Option(100_000, "--n", help="Number of problems."),
     batch: int = typer.Option(1000, help="Problems per solver call."),
+    threads: int = THREADS,
     seed: int = typer.Option(0, help="Seed of the random instances."),
 ) -> None:
     """Stress test: singular PSD effective masses rounded to float32 (every size the tasks use); no failure allowed."""
+    _threads(threads)
     from diffcontact.bench.near_psd import run_near_psd_benchmark
 
     run_near_psd_benchmark(total=total, batch=batch, seed=seed)
@@ -261,14 +294,43 @@ def bench_simulate(
     tasks: list[str] = typer.Option([], "--task", "-t", help="Tasks (default: the 8 benchmark tasks)."),
     n: int = typer.Option(1000, "--n", help="Trajectories per task."),
     steps: int = typer.Option(100, "--steps", help="Frames per trajectory."),
-    threads: int = typer.Option(2, help="torch.set_num_threads."),
     seed: int = typer.Option(0, help="Seed of the initial conditions."),
     out: str = typer.Option("", help="Also write the table as Markdown to this file."),
+    threads: int = THREADS,
 ) -> None:
     """Wall time of simulating N trajectories x T frames for each task (CM, float64)."""
     from diffcontact.bench.simulate import run_simulation_benchmark
 
+    threads = _threads(threads)
     run_simulation_benchmark(tasks=tasks or None, n=n, steps=steps, threads=threads, seed=seed, out=out or None)
+
+
+@bench_app.command("train")
+def bench_train(
+    tasks: list[str] = typer.Argument(None, help="Tasks (default: the 8 benchmark tasks)."),
+    models: list[str] = typer.Option(["CM-CD-CLNN"], "--models", "-m", help="Models (repeat to add others)."),
+    batch: int = typer.Option(200, "--batch", help="Chunks per step (200: the published preset's batch)."),
+    warmup: int = typer.Option(2, help="Untimed steps first."),
+    repeats: int = typer.Option(5, help="Timed steps (medians reported)."),
+    busy: int = typer.Option(0, "--busy", help="Also time the step beside this many busy processes (started here)."),
+    seed: int = typer.Option(0, help="Seed of the data and the initial parameters."),
+    out: str = typer.Option("", help="Also write the results as JSON to this file."),
+    threads: int = THREADS,
+) -> None:
+    """Time of one training step (forward, backward, optimiser) per task and model: dynamics, contact model and
+    optimiser, beside the same step with contacts disabled (float32, synthetic chunks from the task's simulator)."""
+    from diffcontact.bench.train import run_train_benchmark
+    from diffcontact.errors import ConfigError
+
+    _threads(threads)
+    try:
+        run_train_benchmark(
+            tasks or None, models, batch=batch, warmup=warmup, repeats=repeats, seed=seed, busy=busy,
+            out=out or None, echo=typer.echo,
+        )  # fmt: skip
+    except ConfigError as err:
+        typer.echo(f"ConfigError: {err}", err=True)
+        raise typer.Exit(2) from err
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -46,7 +46,7 @@ def run_solver_benchmark(
     out: str | None = None,
 ) -> list[dict]:
     """Print (and optionally write as Markdown) the table; returns its rows."""
-    torch.set_num_threads(2)
+    # (threads: the caller's, e.g. `diffcontact bench solver --threads N`)
     if reference:
         import functools
 
