@@ -72,25 +72,29 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=200)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--steps", type=int, default=3, help="Training steps whose losses are compared.")
+    p.add_argument("--steps", type=int, default=3, help="Training steps whose losses are compared (0: none).")
     p.add_argument("--loss-batch", type=int, default=50)
     p.add_argument("--no-timing", action="store_true")
     args = p.parse_args()
     print(f"base {args.base}, new {NEW}; {args.model}, batch {args.batch}, {args.threads} thread(s), float32")
-    print("| task | step base (ms) | step new (ms) | speed-up | contact share base | new | dynamics base | new "
-          "| max rel. loss difference | load |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| task | step base (ms) | step new (ms) | speed-up | CPU base (ms) | CPU new (ms) | speed-up (CPU) "
+          "| contact share base | new | dynamics base | new | max rel. loss difference | load |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for task in args.tasks:
-        la, lb = losses(args.base, task, args.model, args), losses(NEW, task, args.model, args)
-        rel = max(abs(a - b) / abs(a) for a, b in zip(la, lb))
+        rel = float("nan")
+        if args.steps:
+            la, lb = losses(args.base, task, args.model, args), losses(NEW, task, args.model, args)
+            rel = max(abs(a - b) / abs(a) for a, b in zip(la, lb))
         if args.no_timing:
-            print(f"| {task} | | | | | | | | {rel:.1e} | {os.getloadavg()[0]:.1f} |", flush=True)
+            print(f"| {task} | | | | | | | | | | | {rel:.1e} | {os.getloadavg()[0]:.1f} |", flush=True)
             continue
         a, b = bench(args.base, task, args.model, args), bench(NEW, task, args.model, args)
         a2, b2 = bench(args.base, task, args.model, args), bench(NEW, task, args.model, args)  # (ABAB)
         sa, sb = min(a["step"], a2["step"]), min(b["step"], b2["step"])
+        ca, cb = min(a["cpu"], a2["cpu"]), min(b["cpu"], b2["cpu"])
         print(
-            f"| {task} | {1e3 * sa:.0f} | {1e3 * sb:.0f} | {sa / sb:.2f}× | {a['contact_share']:.0%} | "
+            f"| {task} | {1e3 * sa:.0f} | {1e3 * sb:.0f} | {sa / sb:.2f}× | {1e3 * ca:.0f} | {1e3 * cb:.0f} | "
+            f"{ca / cb:.2f}× | {a['contact_share']:.0%} | "
             f"{b['contact_share']:.0%} | {1e3 * a['dynamics']:.0f} | {1e3 * b['dynamics']:.0f} | {rel:.1e} | "
             f"{os.getloadavg()[0]:.1f} |",
             flush=True,

@@ -111,7 +111,8 @@ def test_bench_train_on_a_small_task(tmp_path, restore_threads):
     (row,) = result["rows"]
     assert row["task"] == "BP5-e" and row["model"] == "CM-CD-CLNN"
     assert row["step"] == pytest.approx(row["forward"] + row["backward"] + row["optimiser"])
-    for key in ("dynamics", "contact", "optimiser", "step_no_contacts", "step_busy", "busy_ratio"):
+    assert 0 <= row["contact_share_cpu"] <= 1
+    for key in ("cpu", "dynamics", "contact", "optimiser", "step_no_contacts", "step_busy", "busy_ratio"):
         assert row[key] >= 0
     assert "| BP5-e | CM-CD-CLNN |" in res.output
     res = CliRunner().invoke(app, ["bench", "train", "BP5-e", "--models", "XX"])

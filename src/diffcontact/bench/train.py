@@ -11,6 +11,10 @@ The parts are
   backward); "contact fwd" is its forward part measured directly;
 - optimiser.
 
+Wall times suffer most from other processes on a shared machine; the process's CPU time of the step (all its
+threads) much less, so the table also gives the step's CPU time and the contact model's share of it (CPU time with
+contacts minus without, over with).
+
 The data are a small synthetic split of the task made as the datasets are (``data.generate.make_split``: the task's
 own simulator, CM, float64, one chunk per trajectory, about half of them colliding), in float32 as in training.
 With ``busy`` > 0, the benchmark also starts that many busy processes itself and times the step with them running
@@ -84,11 +88,12 @@ class StepTimer:
             }
 
     def step(self, contacts: bool = True) -> dict[str, float]:
-        """One training step; returns its parts' wall times in s (forward, backward, optimiser, contact_fwd)."""
+        """One training step; returns its parts' wall times in s (forward, backward, optimiser, contact_fwd) and
+        the CPU time of the process (``cpu``, all threads: less sensitive to other processes than wall time)."""
         if not self.baseline:
             self.net.simulator = self.sims[contacts]
             self.timed.seconds = 0.0
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         loss = self.module.loss(self.batch)
         t1 = time.perf_counter()
         self.opt.zero_grad()
@@ -99,9 +104,10 @@ class StepTimer:
             self.opt.step()
             if self.module.learns_contacts:
                 self.module.learned.project_()
-        t3 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.process_time()
         contact_fwd = self.timed.seconds if not self.baseline and contacts else 0.0
-        return {"forward": t1 - t0, "backward": t2 - t1, "optimiser": t3 - t2, "contact_fwd": contact_fwd}
+        parts = {"forward": t1 - t0, "backward": t2 - t1, "optimiser": t3 - t2, "contact_fwd": contact_fwd}
+        return {**parts, "cpu": c3 - c0}
 
 
 def synthetic_batch(task_name: str, model: str, batch: int, seed: int = 0) -> tuple[tuple[torch.Tensor, ...], float]:
@@ -165,11 +171,13 @@ def time_model(timer: StepTimer, warmup: int, repeats: int, busy: list[subproces
             if c is not None:
                 loaded.append(c)
     signal_all(busy, signal.SIGSTOP)
-    row = {k: _median(full, k) for k in ("forward", "backward", "optimiser", "contact_fwd")}
+    row = {k: _median(full, k) for k in ("forward", "backward", "optimiser", "contact_fwd", "cpu")}
     row["step"] = _step(full)
     if bare:
         fb_bare = _step(bare, ("forward", "backward"))
         row["step_no_contacts"] = _step(bare)
+        row["cpu_no_contacts"] = _median(bare, "cpu")
+        row["contact_share_cpu"] = max(row["cpu"] - row["cpu_no_contacts"], 0.0) / row["cpu"]
         row["dynamics"] = fb_bare
         row["contact"] = max(_step(full, ("forward", "backward")) - fb_bare, 0.0)
         row["contact_share"] = row["contact"] / row["step"]
@@ -228,8 +236,8 @@ def run_train_benchmark(
         f"solver threads, OMP_WAIT_POLICY={header['omp_wait_policy'] or 'unset'}; {batch} chunks of 5 frames, "
         f"float32; medians of {repeats} steps after {warmup}; load average {header['load_average_before'][0]:.2f}"
     )
-    cols = "| task | model | chunks colliding | step (ms) | dynamics | contact | optimiser | contact share "
-    cols += "| step without contacts | contact fwd (measured) |"
+    cols = "| task | model | chunks colliding | step (ms) | step CPU | dynamics | contact | optimiser | contact share "
+    cols += "| step without contacts | contact fwd (measured) | contact share (CPU) |"
     if busy:
         cols += f" step beside {busy} busy | slowdown |"
     echo(cols)
@@ -246,11 +254,14 @@ def run_train_benchmark(
                 row.update(time_model(timer, warmup, repeats, procs))
                 rows.append(row)
                 line = (
-                    f"| {name} | {model} | {colliding:.0%} | {_ms(row['step'])} | {_ms(row.get('dynamics'))} | "
+                    f"| {name} | {model} | {colliding:.0%} | {_ms(row['step'])} | {_ms(row['cpu'])} | "
+                    f"{_ms(row.get('dynamics'))} | "
                     f"{_ms(row.get('contact'))} | {_ms(row['optimiser'])} | "
                     + ("–" if "contact_share" not in row else f"{row['contact_share']:.0%}")
                     + f" | {_ms(row.get('step_no_contacts'))} | "
-                    + f"{_ms(None if timer.baseline else row['contact_fwd'])} |"
+                    + f"{_ms(None if timer.baseline else row['contact_fwd'])} | "
+                    + ("–" if "contact_share_cpu" not in row else f"{row['contact_share_cpu']:.0%}")
+                    + " |"
                 )
                 if busy:
                     line += f" {_ms(row['step_busy'])} | {row['busy_ratio']:.2f}× |"
