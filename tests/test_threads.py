@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import numba
 import pytest
@@ -117,3 +118,29 @@ def test_bench_train_on_a_small_task(tmp_path, restore_threads):
     assert "| BP5-e | CM-CD-CLNN |" in res.output
     res = CliRunner().invoke(app, ["bench", "train", "BP5-e", "--models", "XX"])
     assert res.exit_code == 2 and "model = 'XX' is not one of" in res.output
+
+
+def test_busy_processes_die_with_the_benchmark_even_if_it_is_killed():
+    code = (
+        "import signal, time\n"
+        "from diffcontact.bench.train import start_busy\n"
+        "(p,) = start_busy(1)\n"
+        "p.send_signal(signal.SIGSTOP)\n"  # (as between measurements)
+        "print(p.pid, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    child = int(parent.stdout.readline())
+    parent.kill()
+    parent.wait()
+    parent.stdout.close()
+    for _ in range(50):  # (gone, or a zombie waiting to be reaped by init)
+        try:
+            state = open(f"/proc/{child}/stat").read().split()[2]
+        except FileNotFoundError:
+            break
+        if state in ("Z", "X"):
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail(f"busy process {child} still alive (state {state}) after the benchmark was killed")

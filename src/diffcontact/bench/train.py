@@ -45,7 +45,17 @@ from diffcontact.systems import BENCHMARK_TASKS, build_task
 from diffcontact.train.module import ContactLightningModule
 
 BATCH = 200  # chunks per step: the published preset's batch (the default preset's is 50)
-BUSY_LOOP = "while True: pass"
+# a CPU-bound loop that dies with the benchmark, even if that is killed outright (Linux PR_SET_PDEATHSIG = 1, SIGKILL)
+BUSY_LOOP = """
+import ctypes, os, sys
+if sys.platform == "linux":
+    ctypes.CDLL(None).prctl(1, 9)
+if os.getppid() != int(sys.argv[1]):
+    sys.exit()
+print("ready", flush=True)
+while True:
+    pass
+"""
 
 
 class NoContacts:
@@ -133,8 +143,14 @@ def _step(samples: list[dict[str, float]], parts=("forward", "backward", "optimi
 
 
 def start_busy(n: int) -> list[subprocess.Popen]:
-    """Start ``n`` processes that spin a CPU each (a pure-Python busy loop)."""
-    return [subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) for _ in range(n)]
+    """Start ``n`` processes that spin a CPU each (a pure-Python busy loop; they die with this process)."""
+    procs = [
+        subprocess.Popen([sys.executable, "-c", BUSY_LOOP, str(os.getpid())], stdout=subprocess.PIPE, text=True)
+        for _ in range(n)
+    ]
+    for p in procs:  # (ready: tied to this process, and spinning)
+        p.stdout.readline()
+    return procs
 
 
 def signal_all(procs: list[subprocess.Popen], sig: int) -> None:
@@ -149,6 +165,7 @@ def stop_busy(procs: list[subprocess.Popen]) -> None:
             p.send_signal(signal.SIGCONT)
             p.kill()
         p.wait()
+        p.stdout.close()
 
 
 def time_model(timer: StepTimer, warmup: int, repeats: int, busy: list[subprocess.Popen]) -> dict:
