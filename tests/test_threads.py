@@ -144,3 +144,12 @@ def test_busy_processes_die_with_the_benchmark_even_if_it_is_killed():
         time.sleep(0.1)
     else:
         pytest.fail(f"busy process {child} still alive (state {state}) after the benchmark was killed")
+
+
+COMMANDS = ["train", "generate", "simulate", "evaluate", "reproduce", "bench solver", "bench simulate", "bench train"]
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_command_takes_threads(command):
+    res = CliRunner().invoke(app, [*command.split(), "--help"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0 and "--threads" in res.output

@@ -248,7 +248,7 @@ def reproduce(
     seeds: list[int] = typer.Option([0], "--seeds", "-s", help="Seeds of each (task, model)."),
     out: str = typer.Option("reproduction", "--out", help="Folder of the runs, figures and report.md."),
     quick: bool = typer.Option(False, "--quick", help="Tiny datasets and one epoch: the pipeline in minutes."),
-    jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process with one thread each)."),
+    jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process each)."),
     data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick)."),
     threads: int = typer.Option(
         None, "--threads", min=1, help="Threads of each run (default: the CPUs available to this process / --jobs)."
@@ -308,7 +308,7 @@ def bench_simulate(
 @bench_app.command("train")
 def bench_train(
     tasks: list[str] = typer.Argument(None, help="Tasks (default: the 8 benchmark tasks)."),
-    models: list[str] = typer.Option(["CM-CD-CLNN"], "--models", "-m", help="Models (repeat to add others)."),
+    models: list[str] = typer.Option(["CM-CD-CLNN"], "--models", "-m", help="Models (repeat the option for several)."),
     batch: int = typer.Option(200, "--batch", help="Chunks per step (200: the published preset's batch)."),
     warmup: int = typer.Option(2, help="Untimed steps first."),
     repeats: int = typer.Option(5, help="Timed steps (medians reported)."),
