@@ -43,6 +43,12 @@ def test_mlp_force_equals_autograd_gradient_and_its_derivatives(layers):
     assert torch.autograd.gradcheck(lambda y: pot.force(y), (x,))
 
 
+def test_mlp_force_without_hidden_layers_is_constant():
+    pot = MLPPotential(6, 16, 0, generator=torch.Generator().manual_seed(0)).double()
+    x = torch.randn(4, 3, 2, dtype=torch.float64)
+    assert torch.allclose(pot.force(x), _autograd_force(pot, x), rtol=0, atol=TOL)
+
+
 def test_apply_blocks_point_masses_equal_the_dense_mass_matrix():
     gen = torch.Generator().manual_seed(0)
     inertia = Inertia(masses=torch.rand(5, generator=gen, dtype=torch.float64) + 0.5, moments=torch.zeros(5, 0))

@@ -57,6 +57,8 @@ class MLPPotential(nn.Module, ForcePotential):
         Equal to autograd's gradient up to rounding (Softplus' slope above its threshold, 20, is 1 there and the
         sigmoid here, within 2e-9); the output bias and the last activation are not needed."""
         linears = self.net[::2]  # (Linear, Softplus, ..., Linear)
+        if len(linears) == 1:  # (no hidden layer: V is linear)
+            return -linears[0].weight.expand(x.shape[0], -1).reshape(x.shape)
         h, slopes = x.flatten(1), []
         for i, lin in enumerate(linears[:-1]):
             z = lin(h)
