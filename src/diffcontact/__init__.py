@@ -1,5 +1,10 @@
 """diffcontact: learn the dynamics of colliding rigid bodies with a differentiable contact model."""
 
+from diffcontact.threads import quiet_waiting_env
+
+quiet_waiting_env()  # before torch loads its OpenMP runtime, which reads these once (diffcontact.threads)
+
+# ruff: noqa: E402 (the imports below must come after the call above)
 from diffcontact.config import available_tasks, load_task
 from diffcontact.contact.impulse import ContactModel
 from diffcontact.errors import ConfigError, ContactSolverError, DatasetError, IndefiniteMatrixError

@@ -38,6 +38,21 @@ def _user_errors() -> Iterator[None]:
 bench_app = typer.Typer(help="Benchmarks (medians and ratios measured in one run).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 
+THREADS = typer.Option(
+    None,
+    "--threads",
+    min=1,
+    help="Threads of torch, numba and the contact solver (default: the CPUs available to this process, from its "
+    "affinity and cgroup quota).",
+)
+
+
+def _threads(threads: int | None) -> int:
+    """Apply the --threads option (diffcontact.threads.set_threads); returns the number used."""
+    from diffcontact.threads import set_threads
+
+    return set_threads(threads)
+
 
 @bench_app.command("solver")
 def bench_solver(
@@ -50,9 +65,11 @@ def bench_solver(
         800, help="Time the reference on at most this many problems per setting (its cost is per problem)."
     ),
     seed: int = typer.Option(0, help="Seed of the random instances."),
+    threads: int = THREADS,
     out: str = typer.Option("", help="Also write the table as Markdown to this file."),
 ) -> None:
     """Forward+backward time per problem of the contact solver against the cvxpylayers reference."""
+    _threads(threads)
     from diffcontact.bench.solver import run_solver_benchmark
 
     with _user_errors():
@@ -76,9 +93,11 @@ def simulate(
     seed: int = typer.Option(0, "--seed", help="Seed of the initial conditions."),
     out: str = typer.Option(..., "--out", help="Output .npz: x, v (N,T,P,d), t, energy, contact, config, meta."),
     gif: str = typer.Option("", "--gif", help="Also render trajectory 0 to this GIF."),
+    threads: int = THREADS,
     dynamics: str = typer.Option("lagrangian", help="lagrangian (x, v) or hamiltonian (x, p)."),
 ) -> None:
     """Simulate a task with its true parameters (exact contact model CM, float64)."""
+    _threads(threads)
     from diffcontact.simulate import simulate_task
 
     with _user_errors():
@@ -100,9 +119,11 @@ def generate(
         False, "--force", help="Regenerate even if an identical valid dataset exists, or replace one of other sizes."
     ),
     workers: int = typer.Option(1, "--workers", help="Processes simulating the trajectories (the same bytes for any)."),
+    threads: int = THREADS,
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Generate train/val/test trajectories and 5-frame chunks of a task (CM, float64), with checksums."""
+    _threads(threads)
     import time
 
     from diffcontact.data.generate import generate_dataset
@@ -170,9 +191,11 @@ def train(
     ),
     num_nodes: int = typer.Option(None, "--num-nodes", help="Machines (default 1): docs/scaling.md."),
     accelerator: str = typer.Option("cpu", "--accelerator", help="cpu (gloo between processes), gpu (NCCL) or auto."),
+    threads: int = THREADS,
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Train a model on a task's chunks; writes checkpoints, logs and learned.json into the run directory."""
+    _threads(threads)
     from diffcontact.train.run import train_run
 
     with _user_errors():
@@ -222,9 +245,11 @@ def evaluate(
     data: str = typer.Option("", "--data", help="Dataset root (default: the one the run was trained from)."),
     task: str = typer.Option("", "--task", help="Refuse a run of any other task than this one (name or task file)."),
     frames: int = typer.Option(None, "--frames", help="Frames rolled out (default 70, or the split's if fewer)."),
+    threads: int = THREADS,
     pictures: bool = typer.Option(True, help="Also draw the rollout picture and GIF."),
 ) -> None:
     """Metrics (5-step error, error curve, true energy) of a run's best model against the exact model; figures."""
+    _threads(threads)
     from diffcontact.eval.evaluate import evaluate_run
 
     with _user_errors():  # (a bad run or data, a failed solve, a diverging model)
@@ -243,8 +268,11 @@ def reproduce(
     seeds: list[int] = typer.Option([0], "--seeds", "-s", help="Seeds of each (task, model)."),
     out: str = typer.Option("reproduction", "--out", help="Folder of the runs, figures and report.md."),
     quick: bool = typer.Option(False, "--quick", help="Tiny datasets and one epoch: the pipeline in minutes."),
-    jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process with one thread each)."),
+    jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process each)."),
     data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick)."),
+    threads: int = typer.Option(
+        None, "--threads", min=1, help="Threads of each run (default: the CPUs available to this process / --jobs)."
+    ),
 ) -> None:
     """Train (or reuse) and evaluate every task x model x seed, then write OUT/report.md beside the published values.
 
@@ -252,10 +280,13 @@ def reproduce(
     import sys
 
     from diffcontact.eval.reproduce import reproduce as run_matrix
+    from diffcontact.threads import available_cpus
 
+    per_run = threads or max(1, available_cpus() // max(jobs, 1))
+    _threads(per_run)  # (this process generates the datasets; each run has its own process)
     with _user_errors():
         run_matrix(
-            tasks, models, seeds, out, quick=quick, jobs=jobs, data=data or None, echo=typer.echo,
+            tasks, models, seeds, out, quick=quick, jobs=jobs, threads=per_run, data=data or None, echo=typer.echo,
             command=" ".join(["diffcontact", *sys.argv[1:]]),
         )  # fmt: skip
 
@@ -264,9 +295,11 @@ def reproduce(
 def bench_near_psd(
     total: int = typer.Option(100_000, "--n", help="Number of problems."),
     batch: int = typer.Option(1000, help="Problems per solver call."),
+    threads: int = THREADS,
     seed: int = typer.Option(0, help="Seed of the random instances."),
 ) -> None:
     """Stress test: singular PSD effective masses rounded to float32 (every size the tasks use); no failure allowed."""
+    _threads(threads)
     from diffcontact.bench.near_psd import run_near_psd_benchmark
 
     with _user_errors():
@@ -280,13 +313,14 @@ def bench_simulate(
     ),
     n: int = typer.Option(1000, "--n", help="Trajectories per task."),
     steps: int = typer.Option(100, "--steps", help="Frames per trajectory."),
-    threads: int = typer.Option(2, help="torch.set_num_threads."),
     seed: int = typer.Option(0, help="Seed of the initial conditions."),
     out: str = typer.Option("", help="Also write the table as Markdown to this file."),
+    threads: int = THREADS,
 ) -> None:
     """Wall time of simulating N trajectories x T frames for each task (CM, float64)."""
     from diffcontact.bench.simulate import run_simulation_benchmark
 
+    threads = _threads(threads)
     with _user_errors():
         run_simulation_benchmark(tasks=tasks or None, n=n, steps=steps, threads=threads, seed=seed, out=out or None)
 
@@ -309,20 +343,18 @@ def control_billiards(
     frames: int = typer.Option(0, "--frames", help="Frames simulated (0 = the task's 1024)."),
     gif: bool = typer.Option(True, help="Write the GIF of the final shot."),
     published: bool = typer.Option(True, help="Also simulate the published final cue state for the loss plot."),
+    threads: int = THREADS,
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Billiards (spec G.1): the cue ball's initial position and velocity so that the last ball ends at the goal."""
+    _threads(threads)
     from diffcontact.control.run import run_billiards
-    from diffcontact.errors import ConfigError
 
-    try:
+    with _user_errors():
         r = run_billiards(
             out, balls=balls, frames=frames or None, optimiser=optimiser, max_simulations=max_simulations, tol=tol,
             trials=trials, lr=lr, gif=gif, published=published, echo=typer.echo, progress=progress,
         )  # fmt: skip
-    except ConfigError as err:
-        typer.echo(f"ConfigError: {err}", err=True)
-        raise typer.Exit(2) from err
     typer.echo(f"billiards: distance {r['final_distance_m']:.3g} m after {r['simulations']} simulations "
                f"({r['steps_accepted']} steps; {r['stop']}), cue (p, v) = {[round(t, 5) for t in r['best_theta']]}, "
                f"{r['wall_time_s']:.0f} s -> {out}")  # fmt: skip
@@ -339,20 +371,18 @@ def control_throw(
     trials: int = typer.Option(1, "--trials", help="lm: step lengths tried per simulation, in one batch."),
     lr: float = typer.Option(0.1, "--lr", help="Adam's learning rate (m/s, rad/s)."),
     gif: bool = typer.Option(True, help="Write the GIFs."),
+    threads: int = THREADS,
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Throwing a disk (spec G.2, BD1): land on a target after a bounce, or rebound vertically through spin."""
+    _threads(threads)
     from diffcontact.control.run import run_throw
-    from diffcontact.errors import ConfigError
 
-    try:
+    with _user_errors():
         r = run_throw(
             out, run=run or None, modes=tuple(mode), optimiser=optimiser, max_simulations=max_simulations, tol=tol,
             trials=trials, lr=lr, gif=gif, echo=typer.echo, progress=progress,
         )  # fmt: skip
-    except ConfigError as err:
-        typer.echo(f"ConfigError: {err}", err=True)
-        raise typer.Exit(2) from err
     for m in mode:
         for key, item in r[m].items():
             extra = item.get("landing_distance_to_true_throw_m")
@@ -361,6 +391,30 @@ def control_throw(
                        f"simulations, theta {[round(t, 5) for t in item['best_theta']]}, landing (true physics) "
                        f"{[round(c, 5) for c in item['landings_true_physics'][-1]]}{extra}")  # fmt: skip
     typer.echo(f"-> {out}")
+
+
+@bench_app.command("train")
+def bench_train(
+    tasks: list[str] = typer.Argument(None, help="Tasks (default: the 8 benchmark tasks)."),
+    models: list[str] = typer.Option(["CM-CD-CLNN"], "--models", "-m", help="Models (repeat the option for several)."),
+    batch: int = typer.Option(200, "--batch", help="Chunks per step (200: the published preset's batch)."),
+    warmup: int = typer.Option(2, help="Untimed steps first."),
+    repeats: int = typer.Option(5, help="Timed steps (medians reported)."),
+    busy: int = typer.Option(0, "--busy", help="Also time the step beside this many busy processes (started here)."),
+    seed: int = typer.Option(0, help="Seed of the data and the initial parameters."),
+    out: str = typer.Option("", help="Also write the results as JSON to this file."),
+    threads: int = THREADS,
+) -> None:
+    """Time of one training step (forward, backward, optimiser) per task and model: dynamics, contact model and
+    optimiser, beside the same step with contacts disabled (float32, synthetic chunks from the task's simulator)."""
+    from diffcontact.bench.train import run_train_benchmark
+
+    _threads(threads)
+    with _user_errors():
+        run_train_benchmark(
+            tasks or None, models, batch=batch, warmup=warmup, repeats=repeats, seed=seed, busy=busy,
+            out=out or None, echo=typer.echo,
+        )  # fmt: skip
 
 
 def main() -> None:  # pragma: no cover - console entry point

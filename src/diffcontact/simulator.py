@@ -17,6 +17,7 @@ import torch
 from diffcontact.contact.impulse import COMPENSATION, ContactModel
 from diffcontact.contact.toi import MAX_EVENTS, toi_step
 from diffcontact.dynamics.hamiltonian import hamiltonian_field, momentum, velocity
+from diffcontact.dynamics.inertia import body_blocks
 from diffcontact.dynamics.lagrangian import lagrangian_field
 from diffcontact.errors import ConfigError
 from diffcontact.integrate import rk4_step
@@ -61,9 +62,10 @@ class Simulator:
 
         dt: a float or a tensor (B, 1, 1) in s (a step length per batch element, for the time of impact)."""
         cons = self.system.constraints
+        _, Minv = body_blocks(params.inertia)  # (once for the four stages)
         if self.dynamics == "lagrangian":
-            return rk4_step(partial(lagrangian_field, cons, params), x, v, dt)
-        x1, p1 = rk4_step(partial(hamiltonian_field, cons, params), x, momentum(params, v), dt)
+            return rk4_step(partial(lagrangian_field, cons, params, Minv=Minv), x, v, dt)
+        x1, p1 = rk4_step(partial(hamiltonian_field, cons, params, Minv=Minv), x, momentum(params, v), dt)
         return x1, velocity(params, p1)
 
     def step(self, state: State, params: Params, dt: float) -> tuple[State, torch.Tensor]:

@@ -7,6 +7,7 @@ physics code only reads them.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -16,6 +17,17 @@ Potential = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """A potential energy V(x, masses): positions (B, P, d) and the body masses (n_bodies,) in kg -> (B,), in joules
 (any consistent unit).  The masses are those of the Params holding V (gravity reads them; most terms ignore them),
 so replacing the inertia never leaves the potential with other masses."""
+
+
+class ForcePotential(ABC):
+    """A potential that also gives its force −∇V(x) in closed form, as ordinary differentiable tensor operations.
+
+    The dynamics use :meth:`force` instead of autograd's gradient of V (whose backward is a double backward): the
+    same values, a cheaper training step."""
+
+    @abstractmethod
+    def force(self, x: torch.Tensor) -> torch.Tensor:
+        """−∇V(x): positions (B, P, d) in m -> forces (B, P, d) in N."""
 
 
 @dataclass(frozen=True)

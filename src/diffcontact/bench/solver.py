@@ -51,7 +51,7 @@ def run_solver_benchmark(
     check_counts(batches=batches, contacts=contacts, repeats=repeats, ref_max_batch=ref_max_batch)
     if not dims or any(d not in (1, 2, 3) for d in dims):
         raise ConfigError(f"dims = {dims!r}: every contact dimension must be 1, 2 or 3")
-    torch.set_num_threads(2)
+    # (threads: the caller's, e.g. `diffcontact bench solver --threads N`)
     if reference:
         import functools
 

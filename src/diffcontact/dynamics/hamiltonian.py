@@ -16,14 +16,15 @@ from diffcontact.state import Params
 
 
 def hamiltonian_field(
-    constraints: Constraints, params: Params, x: torch.Tensor, p: torch.Tensor
+    constraints: Constraints, params: Params, x: torch.Tensor, p: torch.Tensor, Minv: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The projected Hamiltonian vector field (ẋ, ṗ), each (B, P, d)."""
+    """The projected Hamiltonian vector field (ẋ, ṗ), each (B, P, d); Minv: the M⁻¹ blocks if already computed."""
     B, P, d = x.shape
     # ∂H/∂p = M⁻¹p and ∂H/∂x = ∇V(x) taken separately: an autograd gradient of H itself with respect to the
     # state would be the total derivative, which after a contact step (p depends on x through the impulse) is not
     # the partial one the field needs.
-    _, Minv = body_blocks(params.inertia)
+    if Minv is None:
+        _, Minv = body_blocks(params.inertia)
     dHdp = apply_blocks(Minv, p)
     dHdx = -potential_force(params, x)
     Y = torch.cat([dHdp.reshape(B, -1), -dHdx.reshape(B, -1)], dim=-1)  # J∇H, (B, 2D)

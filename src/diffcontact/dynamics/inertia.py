@@ -45,6 +45,8 @@ def apply_blocks(blocks: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     P = n (k+1) with the points of a body contiguous. Use with M or M⁻¹ blocks from :func:`body_blocks`.
     """
     n, q, _ = blocks.shape
+    if q == 1:  # point masses: a scale per point (the same products as the einsum, without its copies)
+        return y * blocks.to(y.dtype).reshape(1, n, *[1] * (y.dim() - 2))
     shaped = y.reshape(y.shape[0], n, q, *y.shape[2:])
     out = torch.einsum("nij,bnj...->bni...", blocks.to(y.dtype), shaped)
     return out.reshape(y.shape)

@@ -10,15 +10,18 @@ import torch
 
 from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import apply_blocks, body_blocks
-from diffcontact.state import Params
+from diffcontact.state import ForcePotential, Params
 
 
 def potential_force(params: Params, x: torch.Tensor) -> torch.Tensor:
-    """f = −∇V(x) of ``params.potential_energy`` by autograd: x (B, P, d) -> (B, P, d) in N.
+    """f = −∇V(x) of ``params.potential_energy``: x (B, P, d) -> (B, P, d) in N; by autograd, or the potential's
+    own closed form (:class:`~diffcontact.state.ForcePotential`, e.g. the learned MLP, which uses no masses).
 
     The graph of ∇V is kept when gradients are enabled outside (training, gradient tests), so the force is
     differentiable w.r.t. x and the potential's parameters; under ``torch.no_grad`` it is not.
     """
+    if isinstance(params.potential, ForcePotential):
+        return params.potential.force(x)
     outer = torch.is_grad_enabled()
     with torch.enable_grad():
         xg = x if x.requires_grad else x.detach().requires_grad_(True)
@@ -59,8 +62,11 @@ def constrained_acceleration(
 
 
 def lagrangian_field(
-    constraints: Constraints, params: Params, x: torch.Tensor, v: torch.Tensor
+    constraints: Constraints, params: Params, x: torch.Tensor, v: torch.Tensor, Minv: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The vector field (ẋ, v̇) = (v, a(x, v)) of the constrained Lagrangian system, each (B, P, d)."""
-    _, Minv = body_blocks(params.inertia)
+    """The vector field (ẋ, v̇) = (v, a(x, v)) of the constrained Lagrangian system, each (B, P, d).
+
+    Minv: the M⁻¹ blocks of ``params.inertia`` (:func:`body_blocks`) if already computed (once per RK4 step)."""
+    if Minv is None:
+        _, Minv = body_blocks(params.inertia)
     return v, constrained_acceleration(constraints, Minv, x, v, potential_force(params, x))

@@ -12,7 +12,6 @@ a row marked missing.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import threading
@@ -29,6 +28,7 @@ from diffcontact.eval.evaluate import METRICS_VERSION
 from diffcontact.eval.loading import registered_models
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.systems.registry import BENCHMARK_TASKS
+from diffcontact.threads import thread_env
 
 MODELS = (*MODEL_NAMES, *BASELINE_NAMES)
 # --quick: tiny datasets, one epoch, short rollouts (tests the pipeline, not the method)
@@ -95,11 +95,11 @@ def _call(cmd: list[str], log, env: dict) -> int:
     return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
 
 
-def run_cell(cell: Cell, data: Path, quick: bool) -> dict:
-    """Train (if not trained yet) and evaluate one cell in a subprocess with one thread (``diffcontact.eval.worker``,
-    output to ``run/reproduce.log``); writes and returns ``run/reproduce.json`` ({"status": "done" | "failed",
-    "seconds"[, "error"]})."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", PYTHONUNBUFFERED="1")
+def run_cell(cell: Cell, data: Path, quick: bool, threads: int = 1) -> dict:
+    """Train (if not trained yet) and evaluate one cell in a subprocess with ``threads`` threads
+    (``diffcontact.eval.worker``, output to ``run/reproduce.log``); writes and returns ``run/reproduce.json``
+    ({"status": "done" | "failed", "seconds"[, "error"]})."""
+    env = dict(thread_env(threads), PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "diffcontact.eval.worker", cell.task, cell.model, str(cell.seed), str(cell.run)]
     cmd += [str(data), *(["--train"] if cell.todo == "train" else [])]
     if quick:
@@ -187,6 +187,7 @@ def reproduce(
     *,
     quick: bool = False,
     jobs: int = 1,
+    threads: int = 1,
     data: str | Path | None = None,
     progress_every: float = 60.0,
     echo: Callable[[str], None] = print,
@@ -195,8 +196,9 @@ def reproduce(
     """Generate the datasets where missing, train and evaluate every cell not done yet (``jobs`` at a time), then
     write OUT/report.md (:func:`diffcontact.eval.report.write_report`).  Returns the report's path.
 
-    ``data``: dataset root (default ``data``, or OUT/data with ``quick``).  ``progress_every``: seconds between
-    progress lines while runs are going (one is also printed whenever a run starts or ends).
+    ``threads``: threads of each run's process.  ``data``: dataset root (default ``data``, or OUT/data with
+    ``quick``).  ``progress_every``: seconds between progress lines while runs are going (one is also printed
+    whenever a run starts or ends).
     """
     from diffcontact.data.generate import generate_dataset
     from diffcontact.eval.report import write_report
@@ -211,6 +213,8 @@ def reproduce(
             raise ConfigError(f"model {model!r} is not one of {known}")
     if jobs < 1:
         raise ConfigError(f"jobs = {jobs} is not >= 1")
+    if threads < 1:
+        raise ConfigError(f"threads = {threads} is not >= 1")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     settings = _settings_file(out, quick)
@@ -230,7 +234,7 @@ def reproduce(
     def job(cell: Cell) -> dict:
         progress.start(cell.label)
         try:
-            record = run_cell(cell, data, quick)
+            record = run_cell(cell, data, quick, threads)
         except Exception as err:  # (an OS error starting a subprocess: the other runs go on)
             record = {"status": "failed", "error": f"{type(err).__name__}: {err}"}
         progress.finish(cell.label, record["status"] + (f" ({record['error']})" if "error" in record else ""))

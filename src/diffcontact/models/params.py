@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from diffcontact.errors import ConfigError
-from diffcontact.state import Inertia, Params
+from diffcontact.state import ForcePotential, Inertia, Params
 
 
 def _identity(x: torch.Tensor) -> torch.Tensor:
@@ -32,9 +32,12 @@ MU_TRANSFORMS = {"projected": _identity, "relu": torch.relu, "softplus": nn.func
 E_TRANSFORMS = {"projected": _identity, "hardsigmoid": nn.functional.hardsigmoid, "sigmoid": torch.sigmoid}
 
 
-class MLPPotential(nn.Module):
+class MLPPotential(nn.Module, ForcePotential):
     """V(x, masses): positions (B, P, d) -> (B,); an MLP over the flattened positions with Softplus activations
-    (the masses are not used: the potential is learned in whatever units the learned masses fix)."""
+    (the masses are not used: the potential is learned in whatever units the learned masses fix).
+
+    Its force −∇V (:meth:`force`) is written out (backpropagation by hand), so that a training step differentiates
+    it once instead of through autograd's double backward."""
 
     def __init__(self, n_inputs: int, hidden: int = 256, layers: int = 3, generator: torch.Generator | None = None):
         super().__init__()
@@ -52,6 +55,25 @@ class MLPPotential(nn.Module):
 
     def forward(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
         return self.net(x.flatten(1)).squeeze(-1)
+
+    def force(self, x: torch.Tensor) -> torch.Tensor:
+        """−∇V(x) (B, P, d): the layers forward, then their transposes times the Softplus slopes (sigmoids) back.
+
+        Equal to autograd's gradient up to rounding (Softplus' slope above its threshold, 20, is 1 there and the
+        sigmoid here, within 2e-9); the output bias and the last activation are not needed."""
+        linears = self.net[::2]  # (Linear, Softplus, ..., Linear)
+        if len(linears) == 1:  # (no hidden layer: V is linear)
+            return -linears[0].weight.expand(x.shape[0], -1).reshape(x.shape)
+        h, slopes = x.flatten(1), []
+        for i, lin in enumerate(linears[:-1]):
+            z = lin(h)
+            slopes.append(torch.sigmoid(z))
+            if i < len(linears) - 2:
+                h = self.net[2 * i + 1](z)
+        g = slopes[-1] * linears[-1].weight  # (B, H)
+        for lin, slope in zip(reversed(linears[1:-1]), reversed(slopes[:-1])):
+            g = (g @ lin.weight) * slope
+        return -(g @ linears[0].weight).reshape(x.shape)
 
 
 class LearnedParams(nn.Module):

@@ -1,0 +1,82 @@
+"""The training step's shortcuts equal what they replace (float64): the learned potential's closed-form force
+against autograd's gradient (values and gradients), the point-mass scaling of apply_blocks against the dense mass
+matrix, and a model's rollout with the shortcuts against one through autograd."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffcontact.dynamics.inertia import apply_blocks, body_blocks, dense
+from diffcontact.dynamics.lagrangian import potential_force
+from diffcontact.models import build_model
+from diffcontact.models.params import MLPPotential
+from diffcontact.state import ForcePotential, Inertia, Params
+from diffcontact.systems import build_task
+
+TOL = 1e-12  # float64: rounding only
+
+
+def _autograd_force(potential, x):
+    """−∇V by autograd with the graph kept (the path the closed form replaces)."""
+    with torch.enable_grad():
+        xg = x if x.requires_grad else x.detach().requires_grad_(True)
+        (g,) = torch.autograd.grad(potential(xg).sum(), xg, create_graph=True)
+    return -g
+
+
+@pytest.mark.parametrize("layers", [1, 3])
+def test_mlp_force_equals_autograd_gradient_and_its_derivatives(layers):
+    gen = torch.Generator().manual_seed(layers)
+    pot = MLPPotential(6, 16, layers, generator=gen).double()
+    assert isinstance(pot, ForcePotential)
+    x = torch.randn(4, 3, 2, generator=gen, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(4, 3, 2, generator=gen, dtype=torch.float64)
+    fast, slow = pot.force(x), _autograd_force(pot, x)
+    assert torch.allclose(fast, slow, rtol=0, atol=TOL)
+    unit = Params(Inertia(torch.ones(3, dtype=torch.float64), torch.zeros(3, 0, dtype=torch.float64)), pot, None, None)
+    assert torch.equal(potential_force(unit, x), fast)  # (the dynamics use the closed form)
+    params = [p for p in pot.parameters() if p is not pot.net[-1].bias]  # (the force does not depend on it)
+    ga = torch.autograd.grad((fast * w).sum(), [x, *params])
+    gb = torch.autograd.grad((slow * w).sum(), [x, *params])
+    for a, b in zip(ga, gb):
+        assert torch.allclose(a, b, rtol=0, atol=TOL)
+    assert torch.autograd.gradcheck(lambda y: pot.force(y), (x,))
+
+
+def test_mlp_force_without_hidden_layers_is_constant():
+    pot = MLPPotential(6, 16, 0, generator=torch.Generator().manual_seed(0)).double()
+    x = torch.randn(4, 3, 2, dtype=torch.float64)
+    assert torch.allclose(pot.force(x), _autograd_force(pot, x), rtol=0, atol=TOL)
+
+
+def test_apply_blocks_point_masses_equal_the_dense_mass_matrix():
+    gen = torch.Generator().manual_seed(0)
+    inertia = Inertia(masses=torch.rand(5, generator=gen, dtype=torch.float64) + 0.5, moments=torch.zeros(5, 0))
+    M, Minv = body_blocks(inertia)
+    y = torch.randn(3, 5, 2, 4, generator=gen, dtype=torch.float64)  # (B, P, d, k)
+    for blocks in (M, Minv):
+        want = (dense(blocks, 2) @ y.reshape(3, 10, 4)).reshape(y.shape)
+        assert torch.allclose(apply_blocks(blocks, y), want, rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("name", ["CP3", "BD5"])
+def test_model_rollout_and_gradients_equal_the_autograd_path(name, monkeypatch):
+    """A learned model's rollout and parameter gradients, with the closed-form force, equal those with autograd's."""
+    task = build_task(name)
+    net = build_model(task, "CM-CD-CLNN", hidden=32, seed=1)  # float64
+    state = task.sample(6, 3)
+
+    def run():
+        net.zero_grad()
+        xs, vs = net(state.x, state.v, 4)
+        (xs.square().sum() + vs.square().sum()).backward()
+        return xs.detach(), [p.grad.clone() for p in net.parameters() if p.grad is not None]
+
+    fast_x, fast_g = run()
+    monkeypatch.setattr(MLPPotential, "force", _autograd_force)
+    slow_x, slow_g = run()
+    assert torch.allclose(fast_x, slow_x, rtol=0, atol=TOL)
+    assert len(fast_g) == len(slow_g) > 0
+    for a, b in zip(fast_g, slow_g):
+        assert torch.allclose(a, b, rtol=1e-9, atol=TOL * max(1.0, float(b.abs().max())))
