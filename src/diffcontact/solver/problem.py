@@ -261,8 +261,11 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
             if attempt == 2:
                 lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
                 gamma[better] = gamma_try[better]
-    _raise_on_failure(result.status, on_failure)
-    z = np.where(is_failure(result.status)[:, None], 0.0, result.z)
+    failed = is_failure(result.status)
+    z = result.z
+    if failed.any():
+        _raise_on_failure(result.status, on_failure)
+        z = np.where(failed[:, None], 0.0, z)
     slide = np.zeros_like(sigma)
     if d > 1 and zero_mu.any():
         z, speed = _frictionless_slide_limit(z, A64, q64, T, gamma, zero_mu, d)
