@@ -183,7 +183,12 @@ def _check(rc: int, K: int) -> None:
 
 
 def _address(a: np.ndarray) -> int:
-    return a.ctypes.data
+    """The address of a C-contiguous array's data (through the buffer protocol: 4× faster than ``a.ctypes.data``,
+    which stays the way for read-only and empty arrays)."""
+    try:
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))
+    except (TypeError, ValueError, BufferError):
+        return a.ctypes.data
 
 
 @dataclass
@@ -213,7 +218,7 @@ class IPMResult:
         """Outputs in their initial state for the problems (P, on, on_l): views of one buffer."""
         B, K = on.shape
         buffer = np.zeros(B * (3 * K * d + 2 * K + 3))  # (8-byte items: the int64 outputs are views of it too)
-        views, addresses, end, base = [], [], 0, buffer.ctypes.data
+        views, addresses, end, base = [], [], 0, _address(buffer)
         for shape in ((B, K * d), (B, K), (B, K), (B, K, d), (B, K, d), (B,), (B,), (B,)):
             start, end = end, end + math.prod(shape)
             views.append(buffer[start:end].reshape(shape))
