@@ -152,9 +152,12 @@ def solve_cone_qp(
 ):
     """Solve a batch of contact cone QPs; differentiable by implicit differentiation.
 
-    The solver runs on the CPU in float64 (numpy arrays and a compiled kernel between the input checks and the
-    autograd Function).  Tensors on another device are copied to the CPU and f is copied back to their device
-    (gradients flow through the copies); the info stays on the CPU.
+    The solver runs on the CPU in float64: the inputs become float64 numpy arrays once, after the shape checks, and
+    everything up to the autograd Function works on them (the compiled kernel included); torch tensors only at
+    the two ends (and in the rare elements with flat directions, whose projection is a differentiable torch
+    operation).  Tensors on another device are copied to the CPU and f is copied back to their device (gradients
+    flow through the copies); the info stays on the CPU.  Without gradients (``torch.no_grad()`` or no input that
+    requires one) no autograd Function is made.
 
     Args:
         A: (B, K·d, K·d) symmetric PSD inverse inertia in contact space, possibly singular and PSD only up to
@@ -194,7 +197,8 @@ def solve_cone_qp(
             f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
     else:
         f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts, arrays=arrays)
-    f = f.to(device=device, dtype=out_dtype)
+    if f.dtype != out_dtype or device.type != "cpu":
+        f = f.to(device=device, dtype=out_dtype)
     if return_info:
         info = (torch.from_numpy(a) for a in (result.status, result.iterations, result.residual))
         return f, SolverInfo(*info)
