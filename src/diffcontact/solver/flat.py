@@ -124,12 +124,27 @@ def _flat_range(A, mu, active, d, tol, out, start, stop):
                 break
             s = math.sqrt(s)
             L[jj, jj] = s
-            for ii in range(jj + 1, m):
-                i = rows[ii]
+            ii = jj + 1
+            while ii + 3 < m:  # four rows at once: four independent sums (each in the same order as alone)
+                i0, i1, i2, i3 = rows[ii], rows[ii + 1], rows[ii + 2], rows[ii + 3]
+                t0 = 0.5 * (A[b, i0, j] + A[b, j, i0])
+                t1 = 0.5 * (A[b, i1, j] + A[b, j, i1])
+                t2 = 0.5 * (A[b, i2, j] + A[b, j, i2])
+                t3 = 0.5 * (A[b, i3, j] + A[b, j, i3])
+                for k in range(jj):
+                    lk = L[jj, k]
+                    t0 -= L[ii, k] * lk
+                    t1 -= L[ii + 1, k] * lk
+                    t2 -= L[ii + 2, k] * lk
+                    t3 -= L[ii + 3, k] * lk
+                L[ii, jj], L[ii + 1, jj], L[ii + 2, jj], L[ii + 3, jj] = t0 / s, t1 / s, t2 / s, t3 / s
+                ii += 4
+            for rest in range(ii, m):
+                i = rows[rest]
                 t = 0.5 * (A[b, i, j] + A[b, j, i])
                 for k in range(jj):
-                    t -= L[ii, k] * L[jj, k]
-                L[ii, jj] = t / s
+                    t -= L[rest, k] * L[jj, k]
+                L[rest, jj] = t / s
         out[b] = flat
 
 

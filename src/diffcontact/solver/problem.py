@@ -119,9 +119,16 @@ def _check_values(A, q, mu, lower, active) -> None:
 @njit(cache=True, nogil=True)
 def _values_ok(A, q, mu, lower):
     """True if A, q, mu, lower are finite and mu, lower ≥ 0 (one pass, no temporaries)."""
-    total = 0.0
-    for x in A.flat:
-        total += x * 0.0  # (0 for finite x, NaN for ±inf and NaN)
+    a = A.ravel()
+    s0 = s1 = s2 = s3 = 0.0  # (four independent sums: four times the throughput of one)
+    for i in range(0, len(a) - 3, 4):
+        s0 += a[i] * 0.0  # (0 for finite x, NaN for ±inf and NaN)
+        s1 += a[i + 1] * 0.0
+        s2 += a[i + 2] * 0.0
+        s3 += a[i + 3] * 0.0
+    total = s0 + s1 + s2 + s3
+    for x in a[len(a) - len(a) % 4 :]:
+        total += x * 0.0
     for x in q.flat:
         total += x * 0.0
     for x in mu.flat:
