@@ -152,9 +152,11 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
     row[k * D] = sel(wr, zero, lam_l[k]);
     row[n + k] = sel(wr, one, s_l[k]);
   }
-  // LU with partial pivoting, per lane: reciprocal pivots on the diagonal.  Two columns per pass over the trailing
-  // rows (the matrix does not fit in the L1 cache for large K: half the traffic), each row updated by the same
-  // operations in the same order as one column at a time, so the factors are the same to the last bit.
+  // LU with partial pivoting, per lane: reciprocal pivots on the diagonal.  Right-looking by panels of PANEL
+  // columns: the trailing rows are updated once per panel, not once per column (for large K the matrix does not
+  // fit in the L1 cache: a quarter of the traffic).  Every entry receives the same updates in the same order as
+  // one column at a time, so the factors are the same to the last bit.
+  constexpr int PANEL = 8;
   V sc = zero;
   for (i64 i = 0; i < (i64)N * N; i++) sc += R[i] * R[i];
   sc = vsqrt(sc);
@@ -192,27 +194,35 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
     V d = row(col)[col];
     return 1.0 / sel(d != 0.0, d, one);
   };
-  for (int col = 0; col < N; col += 2) {
-    V inv = pivot(col);
-    const V* p0 = row(col);
-    for (int r = col + 1; r < N; r++) row(r)[col] *= inv;  // multipliers of column col
-    row(col)[col] = inv;
-    if (col + 1 == N) break;
-    const int c1 = col + 1;
-    for (int r = c1; r < N; r++) row(r)[c1] -= row(r)[col] * p0[c1];  // column c1 updated by column col
-    V inv1 = pivot(c1);
-    V* p1 = row(c1);
-    for (int j = c1 + 1; j < N; j++) p1[j] -= p1[col] * p0[j];  // row c1 updated by column col
-    for (int r = c1 + 1; r < N; r++) {
-      V* rr = row(r);
-      V f0 = rr[col], f1 = rr[c1] * inv1;
-      rr[c1] = f1;
-      for (int j = c1 + 1; j < N; j++) {
-        V t = rr[j] - f0 * p0[j];
-        rr[j] = t - f1 * p1[j];
+  for (int c0 = 0; c0 < N; c0 += PANEL) {
+    const int pe = c0 + PANEL < N ? c0 + PANEL : N;
+    for (int c = c0; c < pe; c++) {  // the panel's columns, as one column at a time, on the panel alone
+      V inv = pivot(c);
+      const V* pc = row(c);
+      for (int r = c + 1; r < N; r++) {
+        V* rr = row(r);
+        V f = rr[c] * inv;
+        rr[c] = f;
+        for (int j = c + 1; j < pe; j++) rr[j] -= f * pc[j];
+      }
+      row(c)[c] = inv;
+    }
+    for (int k = c0 + 1; k < pe; k++) {  // the trailing part of the panel's rows (pivot rows of the next ones)
+      V* rk = row(k);
+      for (int j = pe; j < N; j++) {
+        V t = rk[j];
+        for (int c = c0; c < k; c++) t -= rk[c] * row(c)[j];
+        rk[j] = t;
       }
     }
-    p1[c1] = inv1;
+    for (int r = pe; r < N; r++) {  // the trailing rows, all of the panel's updates in one pass
+      V* rr = row(r);
+      for (int j = pe; j < N; j++) {
+        V t = rr[j];
+        for (int c = c0; c < pe; c++) t -= rr[c] * row(c)[j];
+        rr[j] = t;
+      }
+    }
   }
   *e.scale2 = sc;
   return ok;

@@ -84,40 +84,41 @@ struct Work {
 };
 
 // Cholesky factor of H into L (layout: factor below the diagonal, its transpose above,
-// reciprocal diagonal).  Returns the lanes where H is positive definite.  Two columns per pass over the rows below
-// them (for large K the factor does not fit in the L1 cache: half the traffic), each entry computed by the same
-// operations in the same order as one column at a time.
+// reciprocal diagonal).  Returns the lanes where H is positive definite.  By panels of PANEL columns: each row
+// below a panel is read once for all of its columns (for large K the factor does not fit in the L1 cache), each
+// entry computed by the same operations in the same order as one column at a time.
 static inline M cholesky(int n, const V* H, V* L) {
+  constexpr int PANEL = 4;
   M ok = (M{} == 0);
-  // the diagonal entry of column j from the columns before it: its reciprocal
-  auto diagonal = [&](int j) {
-    V s = H[j * n + j];
-    for (int k = 0; k < j; k++) s -= L[j * n + k] * L[j * n + k];
-    ok &= (s > 0.0);
-    V inv = 1.0 / vsqrt(s > 0.0 ? s : 1.0);
-    L[j * n + j] = inv;
-    return inv;
-  };
   auto store = [&](int i, int j, V t) { L[i * n + j] = t, L[j * n + i] = t; };
-  for (int j = 0; j < n; j += 2) {
-    V inv0 = diagonal(j);
-    const int j1 = j + 1;
-    if (j1 == n) break;
-    V t = H[j1 * n + j];
-    for (int k = 0; k < j; k++) t -= L[j1 * n + k] * L[j * n + k];
-    store(j1, j, t * inv0);
-    V inv1 = diagonal(j1);
-    for (int i = j1 + 1; i < n; i++) {
-      V t0 = H[i * n + j], t1 = H[i * n + j1];
-      for (int k = 0; k < j; k++) {
-        V a = L[i * n + k];
-        t0 -= a * L[j * n + k];
-        t1 -= a * L[j1 * n + k];
+  for (int j0 = 0; j0 < n; j0 += PANEL) {
+    const int w = j0 + PANEL < n ? PANEL : n - j0;
+    V inv[PANEL];
+    for (int c = 0; c < w; c++) {  // the panel's own rows, one column at a time
+      const int j = j0 + c;
+      V s = H[j * n + j];
+      for (int k = 0; k < j; k++) s -= L[j * n + k] * L[j * n + k];
+      ok &= (s > 0.0);
+      inv[c] = 1.0 / vsqrt(s > 0.0 ? s : 1.0);
+      L[j * n + j] = inv[c];
+      for (int i = j + 1; i < j0 + w; i++) {
+        V t = H[i * n + j];
+        for (int k = 0; k < j; k++) t -= L[i * n + k] * L[j * n + k];
+        store(i, j, t * inv[c]);
       }
-      t0 *= inv0;
-      store(i, j, t0);
-      t1 -= t0 * L[j1 * n + j];
-      store(i, j1, t1 * inv1);
+    }
+    for (int i = j0 + w; i < n; i++) {  // the rows below it: the columns before the panel, then within it
+      const V* Li = L + i * n;
+      V t[PANEL];
+      for (int c = 0; c < w; c++) t[c] = H[i * n + j0 + c];
+      for (int k = 0; k < j0; k++) {
+        V a = Li[k];
+        for (int c = 0; c < w; c++) t[c] -= a * L[(j0 + c) * n + k];
+      }
+      for (int c = 0; c < w; c++) {
+        for (int k = j0; k < j0 + c; k++) t[c] -= Li[k] * L[(j0 + c) * n + k];
+        store(i, j0 + c, t[c] * inv[c]);
+      }
     }
   }
   return ok;
