@@ -151,6 +151,7 @@ def current_width() -> int:
 
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
+_numba_started = False
 
 
 def parallel(run, count: int) -> None:
@@ -160,8 +161,14 @@ def parallel(run, count: int) -> None:
     running code that releases the GIL (this kernel, numba functions compiled with ``nogil``).  One pool for
     every stage: OpenMP workers of a ``prange`` would spin after their loop and compete with it for the cores.
     """
-    global _pool, _pool_size
+    global _pool, _pool_size, _numba_started
     width = current_width()
+    if not _numba_started:
+        # numba starts its threading layer on the first query, which can change the state of the OpenMP runtime
+        # that torch shares: start it on the first call, whatever the batch, so that a process's floating-point
+        # results do not depend on the sizes of its first batches
+        numba.get_num_threads()
+        _numba_started = True
     # (one thread below 4 groups, without asking numba: its query costs µs, a problem of a simulation step ~10 µs)
     threads = min(numba.get_num_threads(), count // (2 * width)) if count >= 4 * width else 1
     if threads <= 1:
