@@ -7,7 +7,7 @@ import pytest
 import torch
 from solver_oracle import random_instance
 
-from diffcontact.solver import exact, lanes, scaling
+from diffcontact.solver import exact, flat, lanes, scaling, solve_cone_qp
 from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.problem import _solve_with_retries
 
@@ -103,3 +103,44 @@ def test_scaling_matches_its_formulas(d):
             assert (got[key] == value).all(), key
         else:
             np.testing.assert_allclose(got[key], value, rtol=1e-13, atol=1e-300, err_msg=key)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_without_gradients_the_same_solution(dtype):
+    """The path without an autograd Function (no_grad, or no input requiring a gradient) returns f bit for bit."""
+    gen = torch.Generator().manual_seed(11)
+    A, q, mu, lower = (t.to(dtype) for t in random_instance(gen, 9, 3, 3))
+    active = torch.rand(9, 3, generator=gen) > 0.2
+    with_grad = solve_cone_qp(A, q.clone().requires_grad_(), mu, lower, active)
+    with torch.no_grad():
+        without = solve_cone_qp(A, q.clone().requires_grad_(), mu, lower, active)
+    plain = solve_cone_qp(A, q, mu, None if dtype == torch.float32 else lower, active)
+    assert with_grad.requires_grad and not without.requires_grad and not plain.requires_grad
+    assert without.dtype == plain.dtype == dtype
+    assert torch.equal(with_grad.detach(), without)
+    if dtype == torch.float64:
+        assert torch.equal(without, plain)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_flat_test_against_eigenvalues(d):
+    """``flat.flat_elements`` (Cholesky on the rows in use, A symmetrised on the fly) against the eigenvalues of the
+    symmetrised A on the rows of ``flat.rows_in_use``."""
+    gen = torch.Generator().manual_seed(50 + d)
+    B, K, tol = 40, 3, 1e-6
+    A, q, mu, lower = random_instance(gen, B, K, d)
+    A[: B // 2] = random_instance(gen, B // 2, K, d, rank=max(1, K * d - 3))[0]  # singular (flat on most row sets)
+    skew = torch.randn(B, K * d, K * d, generator=gen, dtype=torch.float64)
+    A = A + 0.1 * (skew - skew.mT)  # not symmetric; its symmetric part is the A above
+    active = torch.rand(B, K, generator=gen) > 0.2
+    used = flat.rows_in_use(mu, active, d).numpy()
+    sym = 0.5 * (A + A.mT).numpy()
+    expected = np.zeros(B, dtype=bool)
+    for b in range(B):
+        rows = np.flatnonzero(used[b])
+        if len(rows):
+            sub = sym[b][np.ix_(rows, rows)]
+            expected[b] = np.linalg.eigvalsh(sub)[0] <= tol * max(sub.diagonal().max(), 0.0)
+    got = flat.flat_elements(np.ascontiguousarray(A.numpy()), mu.numpy(), active.numpy(), d, tol)
+    assert expected.sum() >= 5 and (~expected).sum() >= 5
+    assert (got == expected).all()

@@ -26,15 +26,17 @@ def _instances(gen: torch.Generator, B: int, K: int, d: int):
     return A, q, mu, lower
 
 
-def _time_fwd_bwd(solver, A, q, mu, lower, repeats: int) -> tuple[float, torch.Tensor]:
-    times, f = [], None
+def _time_fwd_bwd(solver, A, q, mu, lower, repeats: int) -> tuple[float, float, torch.Tensor]:
+    """(median wall-clock time, median CPU time of the process (all its threads), f) of forward + backward."""
+    times, cpu_times, f = [], [], None
     for _ in range(repeats + 1):  # the first run is warm-up
         ins = [t.clone().requires_grad_() for t in (A, q, mu, lower)]
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         f = solver(*ins)
         f.sum().backward()
         times.append(time.perf_counter() - t0)
-    return statistics.median(times[1:]), f.detach()
+        cpu_times.append(time.process_time() - c0)
+    return statistics.median(times[1:]), statistics.median(cpu_times[1:]), f.detach()
 
 
 def run_solver_benchmark(
@@ -64,10 +66,13 @@ def run_solver_benchmark(
         "forward+backward; "
         f"reference: cvxpylayers/diffcp/SCS eps {REFERENCE_EPS:g}"
     )
+    # (CPU time, of all the process's threads: the work done, less affected than wall-clock time by other
+    # processes on a shared machine)
     header = (
-        "| d | K | B | ours µs/problem | reference µs/problem | speed-up | max abs diff | max diff / max(1, ‖f‖∞) |"
+        "| d | K | B | ours µs/problem | reference µs/problem | speed-up | ours CPU µs | reference CPU µs | "
+        "CPU speed-up | max abs diff | max diff / max(1, ‖f‖∞) |"
     )
-    lines = [header, "|---|---|---|---|---|---|---|---|"]
+    lines = [header, "|---|---|---|---|---|---|---|---|---|---|---|"]
     print(header)
     rows = []
     gen = torch.Generator().manual_seed(seed)
@@ -75,24 +80,28 @@ def run_solver_benchmark(
         for K in contacts:
             for B in batches:
                 A, q, mu, lower = _instances(gen, B, K, d)
-                t_ours, f_ours = _time_fwd_bwd(solve_cone_qp, A, q, mu, lower, repeats)
-                row = {"d": d, "K": K, "B": B, "ours_us": 1e6 * t_ours / B}
+                t_ours, c_ours, f_ours = _time_fwd_bwd(solve_cone_qp, A, q, mu, lower, repeats)
+                row = {"d": d, "K": K, "B": B, "ours_us": 1e6 * t_ours / B, "ours_cpu_us": 1e6 * c_ours / B}
                 if reference:
                     Br = min(B, ref_max_batch)
                     # (its cost varies by ±30 % from run to run on a shared machine: a median of 3)
-                    t_ref, f_ref = _time_fwd_bwd(reference_solver, A[:Br], q[:Br], mu[:Br], lower[:Br], repeats=3)
-                    row["ref_us"] = 1e6 * t_ref / Br
+                    ref_in = (A[:Br], q[:Br], mu[:Br], lower[:Br])
+                    t_ref, c_ref, f_ref = _time_fwd_bwd(reference_solver, *ref_in, repeats=3)
+                    row["ref_us"], row["ref_cpu_us"] = 1e6 * t_ref / Br, 1e6 * c_ref / Br
                     row["speedup"] = row["ref_us"] / row["ours_us"]
+                    row["cpu_speedup"] = row["ref_cpu_us"] / row["ours_cpu_us"]
                     err = (f_ours[:Br] - f_ref).abs().amax(-1)
                     row["diff"] = float(err.max())
                     # relative to the size of each problem's solution, at least 1 (the reference's own error scales
                     # with it)
                     row["rel_diff"] = float((err / f_ref.abs().amax(-1).clamp_min(1.0)).max())
                 rows.append(row)
+                nan = float("nan")
                 line = (
-                    f"| {d} | {K} | {B} | {row['ours_us']:.1f} | {row.get('ref_us', float('nan')):.1f} | "
-                    f"{row.get('speedup', float('nan')):.0f}× | {row.get('diff', float('nan')):.1e} | "
-                    f"{row.get('rel_diff', float('nan')):.1e} |"
+                    f"| {d} | {K} | {B} | {row['ours_us']:.1f} | {row.get('ref_us', nan):.1f} | "
+                    f"{row.get('speedup', nan):.0f}× | {row['ours_cpu_us']:.1f} | {row.get('ref_cpu_us', nan):.1f} | "
+                    f"{row.get('cpu_speedup', nan):.0f}× | {row.get('diff', nan):.1e} | "
+                    f"{row.get('rel_diff', nan):.1e} |"
                 )
                 print(line, flush=True)
                 lines.append(line)

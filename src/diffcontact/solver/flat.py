@@ -80,21 +80,22 @@ def rows_in_use(mu: torch.Tensor, active: torch.Tensor, d: int) -> torch.Tensor:
     return used
 
 
-def flat_elements(A: np.ndarray, used: np.ndarray, tol: float) -> np.ndarray:
-    """(B,) bool: elements whose A, on its rows in use, has an eigenvalue ≤ tol·ref (module docstring).
+def flat_elements(A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float) -> np.ndarray:
+    """(B,) bool: elements whose A, on its rows in use (``rows_in_use``), has an eigenvalue ≤ tol·ref (module
+    docstring).
 
-    A: (B, n, n) float64 (symmetrised); used: (B, n) bool.  A Cholesky factorisation of A − tol·ref·I per
-    element (its rounding error, ~n·eps·ref, is far below tol·ref); ≈ 0.1 µs per element for n = 6, in one thread
-    (the thread pool's dispatch would cost more than the work at the batch sizes of a simulation step).
+    A: (B, n, n) float64, symmetrised here (½(A + Aᵀ)); mu: (B, K) float64; active: (B, K) bool.  A Cholesky
+    factorisation of A − tol·ref·I per element (its rounding error, ~n·eps·ref, is far below tol·ref); ≈ 0.1 µs per
+    element for n = 6, in one thread (the thread pool's dispatch would cost more than the work at the batch sizes
+    of a simulation step).
     """
-    B, n, _ = A.shape
-    out = np.zeros(B, dtype=np.bool_)
-    _flat_range(A, used, tol, out, 0, B)
+    out = np.zeros(len(A), dtype=np.bool_)
+    _flat_range(A, mu, active, d, tol, out, 0, len(A))
     return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _flat_range(A, used, tol, out, start, stop):
+def _flat_range(A, mu, active, d, tol, out, start, stop):
     n = A.shape[1]
     L = np.empty((n, n))
     rows = np.empty(n, dtype=np.int64)
@@ -102,7 +103,8 @@ def _flat_range(A, used, tol, out, start, stop):
         m = 0
         ref = 0.0
         for i in range(n):
-            if used[b, i]:
+            k = i // d
+            if active[b, k] and (i % d == 0 or mu[b, k] != 0.0):  # (rows_in_use)
                 rows[m] = i
                 m += 1
                 ref = max(ref, A[b, i, i])
@@ -122,11 +124,27 @@ def _flat_range(A, used, tol, out, start, stop):
                 break
             s = math.sqrt(s)
             L[jj, jj] = s
-            for ii in range(jj + 1, m):
-                t = A[b, rows[ii], j]
+            ii = jj + 1
+            while ii + 3 < m:  # four rows at once: four independent sums (each in the same order as alone)
+                i0, i1, i2, i3 = rows[ii], rows[ii + 1], rows[ii + 2], rows[ii + 3]
+                t0 = 0.5 * (A[b, i0, j] + A[b, j, i0])
+                t1 = 0.5 * (A[b, i1, j] + A[b, j, i1])
+                t2 = 0.5 * (A[b, i2, j] + A[b, j, i2])
+                t3 = 0.5 * (A[b, i3, j] + A[b, j, i3])
                 for k in range(jj):
-                    t -= L[ii, k] * L[jj, k]
-                L[ii, jj] = t / s
+                    lk = L[jj, k]
+                    t0 -= L[ii, k] * lk
+                    t1 -= L[ii + 1, k] * lk
+                    t2 -= L[ii + 2, k] * lk
+                    t3 -= L[ii + 3, k] * lk
+                L[ii, jj], L[ii + 1, jj], L[ii + 2, jj], L[ii + 3, jj] = t0 / s, t1 / s, t2 / s, t3 / s
+                ii += 4
+            for rest in range(ii, m):
+                i = rows[rest]
+                t = 0.5 * (A[b, i, j] + A[b, j, i])
+                for k in range(jj):
+                    t -= L[rest, k] * L[jj, k]
+                L[rest, jj] = t / s
         out[b] = flat
 
 
@@ -257,23 +275,20 @@ class FlatSet:
         return FlatSet(torch.arange(int(sel.sum())), self.PiN[sel], self.consistent[sel], self.ref[sel])
 
 
-def project_flat(A, q, mu, active, d, tol):
-    """The problem data with flat directions resolved (module docstring).
+def project_flat(A, q, mu, active, d, tol, found):
+    """The problem data with flat directions resolved (module docstring) in the elements ``found``.
 
-    A: (B, n, n), q: (B, n), mu, active: (B, K); tol: ``psd_tol`` of the input dtype.  Returns (A, q, flat):
-    unchanged tensors and flat = None where no element has a flat direction; else float64 tensors (A symmetrised
-    in the changed elements) and a ``FlatSet``.  Differentiable (``FlatProjection``).
+    A: (B, n, n), q: (B, n), mu, active: (B, K) tensors; tol: ``psd_tol`` of the input dtype; found: (B,) bool
+    array, the elements with a flat direction (``flat_elements``), at least one.  Returns (A, q, flat): float64
+    tensors (A symmetrised in the changed elements) and a ``FlatSet``.  Differentiable (``FlatProjection``).
     """
     used = rows_in_use(mu.detach(), active, d)
     A64 = A.to(torch.float64)
     q64 = q.to(torch.float64)
-    sym = 0.5 * (A64 + A64.mT)
-    found = flat_elements(np.ascontiguousarray(sym.detach().numpy()), used.numpy(), tol)
-    if not found.any():
-        return A, q, None
     idx = torch.from_numpy(found).nonzero().flatten()
+    sym = 0.5 * (A64[idx] + A64[idx].mT)
     At, qt, PiN, consistent, ref = FlatProjection.apply(
-        sym[idx], q64[idx], used[idx], tol, idx, mu.detach()[idx].to(torch.float64)
+        sym, q64[idx], used[idx], tol, idx, mu.detach()[idx].to(torch.float64)
     )
     return A64.index_copy(0, idx, At), q64.index_copy(0, idx, qt), FlatSet(idx, PiN, consistent, ref)
 

@@ -57,7 +57,7 @@ class ImplicitConeQP(torch.autograd.Function):
     def forward(ctx, A, q, mu, lower, sol: ScaledSolution):  # noqa: D102
         # (the form with ctx: the one with setup_context binds the arguments by signature on every call, ≈ 20 µs)
         ctx.sol = sol
-        ctx.dtypes = (A.dtype, q.dtype, mu.dtype, lower.dtype)
+        ctx.dtypes = tuple(t.dtype if t is not None else None for t in (A, q, mu, lower))  # (lower may be None)
         return torch.from_numpy(sol.gamma[:, None] * sol.T * sol.z).to(A.dtype)
 
     @staticmethod

@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import ctypes
 import importlib.machinery
+import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numba
@@ -150,6 +151,7 @@ def current_width() -> int:
 
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
+_numba_started = False
 
 
 def parallel(run, count: int) -> None:
@@ -159,9 +161,16 @@ def parallel(run, count: int) -> None:
     running code that releases the GIL (this kernel, numba functions compiled with ``nogil``).  One pool for
     every stage: OpenMP workers of a ``prange`` would spin after their loop and compete with it for the cores.
     """
-    global _pool, _pool_size
+    global _pool, _pool_size, _numba_started
     width = current_width()
-    threads = min(numba.get_num_threads(), count // (2 * width))
+    if not _numba_started:
+        # numba starts its threading layer on the first query, which can change the state of the OpenMP runtime
+        # that torch shares: start it on the first call, whatever the batch, so that a process's floating-point
+        # results do not depend on the sizes of its first batches
+        numba.get_num_threads()
+        _numba_started = True
+    # (one thread below 4 groups, without asking numba: its query costs µs, a problem of a simulation step ~10 µs)
+    threads = min(numba.get_num_threads(), count // (2 * width)) if count >= 4 * width else 1
     if threads <= 1:
         run(0, count)
         return
@@ -181,7 +190,12 @@ def _check(rc: int, K: int) -> None:
 
 
 def _address(a: np.ndarray) -> int:
-    return a.ctypes.data
+    """The address of a C-contiguous array's data (through the buffer protocol: 4× faster than ``a.ctypes.data``,
+    which stays the way for read-only and empty arrays)."""
+    try:
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))
+    except (TypeError, ValueError, BufferError):
+        return a.ctypes.data
 
 
 @dataclass
@@ -201,26 +215,27 @@ class IPMResult:
     P: np.ndarray  # (B, n, n) the problem's data, for the backward pass
     on: np.ndarray  # (B, K) bool, cones in use
     on_l: np.ndarray  # (B, K) bool, rays in use
+    # the addresses of the OUTPUTS (set by ``empty``, whose arrays are views of one buffer; None: taken per call)
+    addresses: list[int] | None = field(default=None, repr=False, compare=False)
 
     OUTPUTS = ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")  # as in ``SolveArgs``
 
     @classmethod
     def empty(cls, P: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int) -> IPMResult:
-        """Outputs in their initial state for the problems (P, on, on_l)."""
+        """Outputs in their initial state for the problems (P, on, on_l): views of one buffer."""
         B, K = on.shape
-        return cls(
-            np.zeros((B, K * d)),
-            np.ones((B, K)),
-            np.ones((B, K)),
-            np.zeros((B, K, d)),
-            np.zeros((B, K, d)),
-            np.zeros(B, dtype=np.int64),
-            np.zeros(B, dtype=np.int64),
-            np.zeros(B),
-            P,
-            on,
-            on_l,
-        )
+        buffer = np.zeros(B * (3 * K * d + 2 * K + 3))  # (8-byte items: the int64 outputs are views of it too)
+        views, addresses, end, base = [], [], 0, _address(buffer)
+        for shape in ((B, K * d), (B, K), (B, K), (B, K, d), (B, K, d), (B,), (B,), (B,)):
+            start, end = end, end + math.prod(shape)
+            views.append(buffer[start:end].reshape(shape))
+            addresses.append(base + 8 * start)
+        views[1][:] = views[2][:] = 1.0  # unit ray slacks and multipliers
+        views[5], views[6] = views[5].view(np.int64), views[6].view(np.int64)
+        return cls(*views, P, on, on_l, addresses)
+
+
+_NO_TRACE = np.zeros((0, 0, 4))
 
 
 def solve(
@@ -253,7 +268,7 @@ def solve(
     out = IPMResult.empty(P, on, on_l, d) if out is None else out
     idx = np.arange(B, dtype=np.int64) if idx is None else idx
     if trace is None:
-        trace = np.zeros((B, 0, 4))
+        trace = _NO_TRACE
     elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
         raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
     args = SolveArgs(
@@ -268,8 +283,8 @@ def solve(
         start_margin,
         refine_tol,
         polish_steps,
-        *(_address(getattr(out, name)) for name in IPMResult.OUTPUTS),
-        _address(trace),
+        *(out.addresses or [_address(getattr(out, name)) for name in IPMResult.OUTPUTS]),
+        _address(trace) if trace.size else 0,
         trace.shape[1],
     )
     ref = ctypes.byref(args)
@@ -282,11 +297,12 @@ def adjoint(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     singular elements taken as inactive.  g: (B, n) float64, C-contiguous.  Returns u: (B, n), the rays' v: (B, K)
     and ok: (B,) bool (False where K is singular even so)."""
     B, K = res.s_l.shape
-    u = np.empty((B, K * res.s_q.shape[-1]))
-    v_l = np.empty((B, K))
+    n = K * res.s_q.shape[-1]
+    u, v_l = np.empty((B, n)), np.empty((B, K))
     ok = np.empty(B, dtype=np.bool_)
-    inputs = (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)
-    args = AdjointArgs(*map(_address, inputs), K, res.s_q.shape[-1], *map(_address, (g, u, v_l, ok)))
+    solution = res.addresses[1:5] if res.addresses else [_address(a) for a in (res.s_l, res.lam_l, res.s_q, res.lam_q)]
+    inputs = (_address(res.P), *solution, _address(res.on), _address(res.on_l))
+    args = AdjointArgs(*inputs, K, res.s_q.shape[-1], *map(_address, (g, u, v_l, ok)))
     ref = ctypes.byref(args)
     parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(ref, start, stop), K), B)
     return u, v_l, ok

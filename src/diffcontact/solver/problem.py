@@ -18,6 +18,7 @@ from typing import Literal
 
 import numpy as np
 import torch
+from numba import njit
 
 from diffcontact.errors import ContactSolverError
 from diffcontact.solver import flat, lanes, scaling
@@ -31,6 +32,9 @@ ROUNDING_TOL = 1e-13  # polishing reached rounding level: converged without a pa
 POLISH_STEPS = 3  # factorisations per polishing pass
 START_MARGIN = 0.1  # how far inside the cones the first start lies: measured over 0.001 … 3, K = 1 … 19, d = 2, 3
 ROBUST_MARGIN = 1.0  # CVXOPT's, the start of the retries: slower on average, more robust
+# (plain ints: an IntEnum member costs a µs per access in Python 3.11)
+_CONVERGED, _INACCURATE, _MAX_ITER = int(Status.CONVERGED), int(Status.INACCURATE), int(Status.MAX_ITER)
+assert _CONVERGED == 0  # (``not status.any()``: all converged)
 
 
 @dataclass
@@ -66,6 +70,15 @@ def check_problem(A, q, mu, lower=None, active=None):
     A: (B, K·d, K·d); q: (B, K·d); mu: (B, K) in [0, MU_MAX]; lower: (B, K) ≥ 0 or None; active: (B, K) bool or
     None; half-precision tensors are refused (their solutions overflow).
     """
+    d = _check_shapes(A, q, mu, lower, active)
+    _check_values(*_as_arrays(A, q, mu, lower, active))
+    lower = torch.zeros_like(mu) if lower is None else lower
+    active = torch.ones(mu.shape, dtype=torch.bool, device=mu.device) if active is None else active
+    return A, q, mu, lower, active, d
+
+
+def _check_shapes(A, q, mu, lower, active) -> int:
+    """The shape and type checks of ``check_problem``; returns the contact dimension d."""
     for name, t in (("A", A), ("q", q), ("mu", mu)):
         if not isinstance(t, torch.Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
@@ -79,36 +92,65 @@ def check_problem(A, q, mu, lower=None, active=None):
     K = mu.shape[-1]
     if K == 0 or n % K != 0 or n // K not in (1, 2, 3):
         raise ValueError(f"A has {n} rows for K = {K} contacts: the contact dimension d = n/K must be 1, 2 or 3")
-    d = n // K
-    if tuple(q.shape) != (B, n):
+    if q.shape != (B, n):
         raise ValueError(f"q must have shape (B, K*d) = {(B, n)}, got {tuple(q.shape)}")
-    if lower is None:
-        lower = torch.zeros_like(mu)
-    elif tuple(lower.shape) != (B, K):
+    if lower is not None and lower.shape != (B, K):
         raise ValueError(f"lower must have shape (B, K) = {(B, K)}, got {tuple(lower.shape)}")
-    if active is None:
-        active = torch.ones(B, K, dtype=torch.bool, device=mu.device)
-    elif tuple(active.shape) != (B, K) or active.dtype != torch.bool:
+    if active is not None and (active.shape != (B, K) or active.dtype != torch.bool):
         raise ValueError(f"active must be a bool tensor of shape (B, K) = {(B, K)}")
-    for name, t in (("A", A), ("q", q), ("mu", mu), ("lower", lower)):
-        x = t.detach().numpy()  # (numpy reductions: a few µs where torch's cost tens on small batches)
-        # (a finite sum is the fast test; an overflowing one falls through to the exact test)
-        if not np.isfinite(x.sum()):
-            bad = ~np.isfinite(x).reshape(B, -1).all(-1)
-            if bad.any():
-                raise ValueError(f"{name} has non-finite values in batch elements {_first(torch.from_numpy(bad))}")
-        if name in ("mu", "lower") and x.size and x.min() < 0:
-            negative = torch.from_numpy((x < 0).any(-1))
-            raise ValueError(f"{name} must be >= 0; negative in batch elements {_first(negative)}")
-        if name == "mu" and x.size and float(x.max()) > MU_MAX:
-            raise ValueError(
-                f"mu must be <= {MU_MAX:g}; larger in batch elements {_first(torch.from_numpy(x > MU_MAX).any(-1))}"
-            )
-    return A, q, mu, lower, active, d
+    return n // K
 
 
-def _first(mask: torch.Tensor, k: int = 10) -> str:
-    idx = mask.nonzero().flatten().tolist()
+def _as_arrays(A, q, mu, lower, active):
+    """The data the solver works on: C-contiguous numpy arrays, float64 (A, q, mu, lower: zeros if None) and bool
+    (active: all True if None).  Views of float64 CPU tensors, copies otherwise."""
+    A, q, mu = (np.ascontiguousarray(t.detach().numpy(), dtype=np.float64) for t in (A, q, mu))
+    lower = np.zeros(mu.shape) if lower is None else np.ascontiguousarray(lower.detach().numpy(), dtype=np.float64)
+    active = np.ones(mu.shape, dtype=np.bool_) if active is None else np.ascontiguousarray(active.numpy())
+    return A, q, mu, lower, active
+
+
+def _check_values(A, q, mu, lower, active) -> None:
+    """Raise ``ValueError`` naming the batch elements where A, q, mu or lower are not finite or mu, lower < 0
+    (arrays of ``_as_arrays``)."""
+    if _values_ok(A, q, mu, lower):
+        return
+    B = len(mu)
+    for name, x in (("A", A), ("q", q), ("mu", mu), ("lower", lower)):
+        bad = ~np.isfinite(x).reshape(B, -1).all(-1)
+        if bad.any():
+            raise ValueError(f"{name} has non-finite values in batch elements {_first(bad)}")
+        if name in ("mu", "lower") and (x < 0).any():
+            raise ValueError(f"{name} must be >= 0; negative in batch elements {_first((x < 0).any(-1))}")
+    if mu.size and mu.max() > MU_MAX:
+        raise ValueError(f"mu must be <= {MU_MAX:g}; larger in batch elements {_first((mu > MU_MAX).any(-1))}")
+
+
+@njit(cache=True, nogil=True)
+def _values_ok(A, q, mu, lower):
+    """True if A, q, mu, lower are finite and mu, lower ≥ 0 (one pass, no temporaries)."""
+    a = A.ravel()
+    s0 = s1 = s2 = s3 = 0.0  # (four independent sums: four times the throughput of one)
+    for i in range(0, len(a) - 3, 4):
+        s0 += a[i] * 0.0  # (0 for finite x, NaN for ±inf and NaN)
+        s1 += a[i + 1] * 0.0
+        s2 += a[i + 2] * 0.0
+        s3 += a[i + 3] * 0.0
+    total = s0 + s1 + s2 + s3
+    for x in a[len(a) - len(a) % 4 :]:
+        total += x * 0.0
+    for x in q.flat:
+        total += x * 0.0
+    for x in mu.flat:
+        total += x * 0.0 if 0 <= x <= MU_MAX else np.nan
+    for x in lower.flat:
+        total += x * 0.0 if x >= 0 else np.nan
+    return total == 0.0
+
+
+def _first(mask, k: int = 10) -> str:
+    """The first k indices where the (B,) bool array or tensor ``mask`` is True, as text."""
+    idx = np.flatnonzero(np.asarray(mask)).tolist()
     return str(idx[:k]) + (f" (and {len(idx) - k} more)" if len(idx) > k else "")
 
 
@@ -127,9 +169,12 @@ def solve_cone_qp(
 ):
     """Solve a batch of contact cone QPs; differentiable by implicit differentiation.
 
-    The solver runs on the CPU in float64 (numpy arrays and a compiled kernel between the input checks and the
-    autograd Function).  Tensors on another device are copied to the CPU and f is copied back to their device
-    (gradients flow through the copies); the info stays on the CPU.
+    The solver runs on the CPU in float64: the inputs become float64 numpy arrays once, after the shape checks, and
+    everything up to the autograd Function works on them (the compiled kernel included); torch tensors only at
+    the two ends (and in the rare elements with flat directions, whose projection is a differentiable torch
+    operation).  Tensors on another device are copied to the CPU and f is copied back to their device (gradients
+    flow through the copies); the info stays on the CPU.  Without gradients (``torch.no_grad()`` or no input that
+    requires one) no autograd Function is made.
 
     Args:
         A: (B, K·d, K·d) symmetric PSD inverse inertia in contact space, possibly singular and PSD only up to
@@ -157,24 +202,35 @@ def solve_cone_qp(
     device = A.device if isinstance(A, torch.Tensor) else torch.device("cpu")
     if device.type != "cpu":
         A, q, mu, lower, active = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (A, q, mu, lower, active))
-    A, q, mu, lower, active, d = check_problem(A, q, mu, lower, active)
+    d = _check_shapes(A, q, mu, lower, active)
+    arrays = _as_arrays(A, q, mu, lower, active)
+    _check_values(*arrays)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
-    A, q, flats = flat.project_flat(A, q, mu, active, d, flat.psd_tol(out_dtype))
     opts = (tol, acceptable_tol, max_iter, on_failure)
-    if flats is not None and flats.consistent.any():
-        f, result = _solve_least_norm(A, q, mu, lower, active, d, flats, opts)
+    found = flat.flat_elements(arrays[0], arrays[2], arrays[4], d, flat.psd_tol(out_dtype))
+    if found.any():  # (rare: the elements with flat directions, in torch)
+        lower = torch.from_numpy(arrays[3]) if lower is None else lower
+        active = torch.from_numpy(arrays[4])
+        A, q, flats = flat.project_flat(A, q, mu, active, d, flat.psd_tol(out_dtype), found)
+        if flats.consistent.any():
+            f, result = _solve_least_norm(A, q, mu, lower, active, d, flats, opts)
+        else:
+            f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
     else:
-        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
-    f = f.to(device=device, dtype=out_dtype)
+        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts, arrays=arrays)
+    if f.dtype != out_dtype or device.type != "cpu":
+        f = f.to(device=device, dtype=out_dtype)
     if return_info:
         info = (torch.from_numpy(a) for a in (result.status, result.iterations, result.residual))
         return f, SolverInfo(*info)
     return f
 
 
-def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure):
-    """Solve the batch (checked tensors of ``solve_cone_qp``) with the retry policy below and apply the failure
-    policy; returns (f (B, n) float64, differentiable (``ImplicitConeQP``), the kernel's ``IPMResult``).
+def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure, arrays=None):
+    """Solve the batch (checked tensors of ``solve_cone_qp``; lower, active may be None) with the retry policy
+    below and apply the failure policy; returns (f (B, n) float64, differentiable (``ImplicitConeQP``) where an
+    input requires a gradient, and the kernel's ``IPMResult``).  arrays: ``_as_arrays`` of the tensors if made
+    already; the solver works on them, the tensors are only the ends of the autograd graph.
 
     The data are scaled once (f = γ·S·D·z, ``scaling.py``); every attempt then runs the compiled interior-point
     method with polishing (``lanes.solve``) on some elements, in up to two passes:
@@ -192,9 +248,9 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
     Attempts 2 and 3 replace an element's result only where they end with a better (lower) status.  Failed
     elements (``status.is_failure``) get z = 0, and raise ``ContactSolverError`` if ``on_failure`` is "raise".
     """
-    arrays = (np.ascontiguousarray(t.detach().to(torch.float64).numpy()) for t in (A, q, mu, lower))
+    A64, q64, mu64, lower64, active64 = _as_arrays(A, q, mu, lower, active) if arrays is None else arrays
     A64, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = scaling.scale_batch(
-        *arrays, np.ascontiguousarray(active.numpy()), contact_dims(d)
+        A64, q64, mu64, lower64, active64, contact_dims(d)
     )
     passes = [dict(ipm_tol=tol, final_tol=tol)]
     if tol < IPM_TOL:
@@ -204,9 +260,11 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
     elements, start_margin, c_try, l_try, gamma_try = np.arange(len(gamma)), START_MARGIN, c, l_hat, gamma
     for attempt in range(3):
         if attempt == 1:
-            elements, start_margin = np.flatnonzero(result.status != Status.CONVERGED), ROBUST_MARGIN
+            if not result.status.any():  # (all CONVERGED, the common case)
+                break
+            elements, start_margin = np.flatnonzero(result.status != _CONVERGED), ROBUST_MARGIN
         elif attempt == 2:
-            elements = np.flatnonzero((result.status == Status.MAX_ITER) & np.isfinite(result.z).all(-1))
+            elements = np.flatnonzero((result.status == _MAX_ITER) & np.isfinite(result.z).all(-1))
             gamma_try = gamma.copy()
             gamma_try[elements] *= np.maximum(np.abs(result.z[elements]).max(-1), 1e-6)
             ratio = (gamma / gamma_try)[:, None]  # c, l̂ and ∂l̂/∂lower all scale with 1/γ
@@ -218,7 +276,7 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
         for tols in passes:
             lanes.solve(P, c_try, l_try, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
             status = out.status[idx]
-            idx = idx[(status == Status.INACCURATE) | (status == Status.MAX_ITER)]
+            idx = idx[(status == _INACCURATE) | (status == _MAX_ITER)]
             if not len(idx):
                 break
         if attempt > 0:  # keep the better result
@@ -228,15 +286,19 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
             if attempt == 2:
                 lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
                 gamma[better] = gamma_try[better]
-    _raise_on_failure(result.status, on_failure)
-    z = np.where(is_failure(result.status)[:, None], 0.0, result.z)
+    failed = is_failure(result.status)
+    z = result.z
+    if failed.any():
+        _raise_on_failure(result.status, on_failure)
+        z = np.where(failed[:, None], 0.0, z)
     slide = np.zeros_like(sigma)
     if d > 1 and zero_mu.any():
-        z, speed = _frictionless_slide_limit(z, A64, q.detach().to(torch.float64).numpy(), T, gamma, zero_mu, d)
+        z, speed = _frictionless_slide_limit(z, A64, q64, T, gamma, zero_mu, d)
         # At μ = 0⁺ a sliding contact's cone multiplier is its sliding speed ‖g_t‖ and adds μ‖g_t‖ to the normal
         # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
         slide = speed * sigma / gamma[:, None] * zero_mu
-    q64 = np.ascontiguousarray(q.detach().to(torch.float64).numpy())
+    if not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (A, q, mu, lower))):
+        return torch.from_numpy(gamma[:, None] * T * z), result
     sol = ScaledSolution(A64, q64, T, S, gamma, lower_scale, slide, z, result)
     if not A.dtype.is_floating_point:
         A = A.to(torch.float64)
@@ -250,7 +312,7 @@ def _raise_on_failure(status: np.ndarray, on_failure: str) -> None:
         codes = {int(s): Status(int(s)).name for s in np.unique(status[failed])}
         raise ContactSolverError(
             f"contact solver failed for {int(failed.sum())} of {len(status)} batch elements "
-            f"{_first(torch.from_numpy(failed))} (status {codes}); pass on_failure='count' to continue with zero "
+            f"{_first(failed)} (status {codes}); pass on_failure='count' to continue with zero "
             "impulses for them",
             status=torch.from_numpy(status),
             failed=np.flatnonzero(failed).tolist(),

@@ -84,21 +84,41 @@ struct Work {
 };
 
 // Cholesky factor of H into L (layout: factor below the diagonal, its transpose above,
-// reciprocal diagonal).  Returns the lanes where H is positive definite.
+// reciprocal diagonal).  Returns the lanes where H is positive definite.  By panels of PANEL columns: each row
+// below a panel is read once for all of its columns (for large K the factor does not fit in the L1 cache), each
+// entry computed by the same operations in the same order as one column at a time.
 static inline M cholesky(int n, const V* H, V* L) {
+  constexpr int PANEL = 4;
   M ok = (M{} == 0);
-  for (int j = 0; j < n; j++) {
-    V s = H[j * n + j];
-    for (int k = 0; k < j; k++) s -= L[j * n + k] * L[j * n + k];
-    ok &= (s > 0.0);
-    V inv = 1.0 / vsqrt(s > 0.0 ? s : 1.0);
-    L[j * n + j] = inv;
-    for (int i = j + 1; i < n; i++) {
-      V t = H[i * n + j];
-      for (int k = 0; k < j; k++) t -= L[i * n + k] * L[j * n + k];
-      t *= inv;
-      L[i * n + j] = t;
-      L[j * n + i] = t;
+  auto store = [&](int i, int j, V t) { L[i * n + j] = t, L[j * n + i] = t; };
+  for (int j0 = 0; j0 < n; j0 += PANEL) {
+    const int w = j0 + PANEL < n ? PANEL : n - j0;
+    V inv[PANEL];
+    for (int c = 0; c < w; c++) {  // the panel's own rows, one column at a time
+      const int j = j0 + c;
+      V s = H[j * n + j];
+      for (int k = 0; k < j; k++) s -= L[j * n + k] * L[j * n + k];
+      ok &= (s > 0.0);
+      inv[c] = 1.0 / vsqrt(s > 0.0 ? s : 1.0);
+      L[j * n + j] = inv[c];
+      for (int i = j + 1; i < j0 + w; i++) {
+        V t = H[i * n + j];
+        for (int k = 0; k < j; k++) t -= L[i * n + k] * L[j * n + k];
+        store(i, j, t * inv[c]);
+      }
+    }
+    for (int i = j0 + w; i < n; i++) {  // the rows below it: the columns before the panel, then within it
+      const V* Li = L + i * n;
+      V t[PANEL];
+      for (int c = 0; c < w; c++) t[c] = H[i * n + j0 + c];
+      for (int k = 0; k < j0; k++) {
+        V a = Li[k];
+        for (int c = 0; c < w; c++) t[c] -= a * L[(j0 + c) * n + k];
+      }
+      for (int c = 0; c < w; c++) {
+        for (int k = j0; k < j0 + c; k++) t[c] -= Li[k] * L[(j0 + c) * n + k];
+        store(i, j0 + c, t[c] * inv[c]);
+      }
     }
   }
   return ok;
