@@ -98,8 +98,8 @@ def test_python_and_kernel_agree_on_the_shared_facts():
     """Status codes, failure rule, weak-cone threshold and struct sizes: csrc/api.h against the Python copies."""
     got = lanes._lib.diffcontact_constants().contents
     assert {s.name: int(s) for s in Status} == {s.name: getattr(got, s.name.lower()) for s in Status}
-    assert got.first_failure == status.FIRST_FAILURE == Status.MAX_ITER
-    assert got.weak_tol == status.WEAK_TOL == 1e-6
+    assert got.first_failure == status.FIRST_FAILURE
+    assert got.weak_tol == status.WEAK_TOL
     assert got.solve_args_size == ctypes.sizeof(lanes.SolveArgs)
     assert got.adjoint_args_size == ctypes.sizeof(lanes.AdjointArgs)
     assert [bool(status.is_failure(s)) for s in Status] == [False, False, True, True, True]
