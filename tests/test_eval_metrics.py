@@ -87,3 +87,30 @@ def test_true_energy_of_a_falling_point_mass_and_its_deviation():
     assert energy_deviation(energy + 1.01, energy + 1, kinetic)[0].tolist() == pytest.approx([0.04, 0.04])
     with pytest.raises(ValueError, match="true trajectory 0 never moves"):
         energy_deviation(energy, energy, torch.zeros_like(energy))
+
+
+def test_a_diverged_prediction_has_infinite_error_where_allowed():
+    x = _traj([[[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]]])
+    v = torch.zeros_like(x)
+    bad = x.clone()
+    bad[0, 2] = float("nan")
+    rel = relative_error(bad, v, x, v, diverged_ok=True)
+    assert rel[0, :2].tolist() == [0.0, 0.0] and rel[0, 2] == float("inf")
+
+
+def test_predict_keeps_the_finite_prefix_of_a_diverging_trajectory():
+    from diffcontact.eval.rollouts import predict
+
+    class Diverging(torch.nn.Module):  # element with x0 > 0 "diverges" at frame 3: a rollout of > 3 frames raises
+        def forward(self, x0, v0, frames):
+            if frames > 3 and bool((x0 > 0).any()):
+                raise FloatingPointError("frame 3: non-finite state")
+            xs = x0[:, None] + torch.arange(frames, dtype=x0.dtype)[None, :, None, None]
+            return xs, torch.zeros_like(xs)
+
+    x0 = torch.tensor([[[-1.0, -1.0]], [[1.0, 1.0]], [[-2.0, -2.0]]], dtype=torch.float64)  # (3, 1, 2)
+    xs, vs = predict(Diverging(), x0, torch.zeros_like(x0), 6, batch=2)
+    assert xs.shape == (3, 6, 1, 2)
+    assert torch.isfinite(xs[0]).all() and torch.isfinite(xs[2]).all()  # (the others are kept whole)
+    assert torch.isfinite(xs[1, :3]).all() and torch.isnan(xs[1, 3:]).all()
+    assert xs[1, :3, 0, 0].tolist() == [1.0, 2.0, 3.0]

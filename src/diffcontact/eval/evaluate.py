@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import torch
+
 from diffcontact.data.store import save_npz, versions, write_json
 from diffcontact.eval.loading import load_run
 from diffcontact.eval.metrics import (
@@ -53,13 +55,16 @@ def evaluate_run(
         frames = min(FRAMES, int(load_meta(folder)["request"]["frames"]))
     ro = rollout_split(loaded.net, folder, split, frames, loaded.task.config)
     N, T = ro.x.shape[:2]
-    rel = relative_error(ro.x_hat, ro.v_hat, ro.x, ro.v)
+    rel = relative_error(ro.x_hat, ro.v_hat, ro.x, ro.v, diverged_ok=True)  # (+inf where the model diverged)
+    finite = torch.isfinite(rel)
+    diverged = {int(n): int((~finite[n]).nonzero()[0]) for n in (~finite.all(1)).nonzero().flatten()}
     steps, curve_len = min(STEPS, T), min(CURVE, T)
     per_traj = trajectory_error(rel, steps)
     mean, half = mean_interval(per_traj)
     energy, kinetic = true_energy(loaded.task, ro.x, ro.v)
     energy_hat, _ = true_energy(loaded.task, ro.x_hat, ro.v_hat)
-    dev = energy_deviation(energy_hat[:, :curve_len], energy[:, :curve_len], kinetic[:, :curve_len]).amax(1)  # (N,)
+    dev = energy_deviation(energy_hat[:, :curve_len], energy[:, :curve_len], kinetic[:, :curve_len])
+    dev = dev.nan_to_num(nan=float("inf")).amax(1)  # (N,) (+inf for a trajectory that diverged)
     shown = min(SHOWN.get(name, 0), N - 1)
     metrics = {
         "metrics_version": METRICS_VERSION,
@@ -72,6 +77,7 @@ def evaluate_run(
         "frames": T,
         "dt": ro.dt,
         "ground_truth": "test trajectories: exact contact model (CM), float64, from the same initial states",
+        "diverged": {"trajectories": len(diverged), "first_nonfinite_frame": diverged},
         "trajectory_error": {"steps": steps, "mean": mean, "ci95": half, "per_trajectory": per_traj.tolist()},
         "error_curve": error_curve(rel, curve_len).tolist(),
         "energy": {

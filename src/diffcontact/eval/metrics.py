@@ -12,16 +12,19 @@ import math
 import torch
 
 
-def relative_error(x_hat: torch.Tensor, v_hat: torch.Tensor, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+def relative_error(
+    x_hat: torch.Tensor, v_hat: torch.Tensor, x: torch.Tensor, v: torch.Tensor, diverged_ok: bool = False
+) -> torch.Tensor:
     """‖ẑ_t − z_t‖ / ‖z_t‖ per trajectory and frame, the norms over every position and velocity entry of the frame
     (z = (x, v)): x_hat, v_hat, x, v (N, T, P, d) -> (N, T), dimensionless.
 
-    Raises FloatingPointError for a non-finite prediction and ValueError for a true frame that is all zeros.
+    A non-finite predicted frame raises FloatingPointError, or with ``diverged_ok`` (a model that diverged) has
+    the error +inf; ValueError for a true frame that is all zeros.
     """
     if x_hat.shape != x.shape or v_hat.shape != v.shape or x.shape != v.shape:
         raise ValueError(f"shapes differ: x_hat {tuple(x_hat.shape)}, v_hat {tuple(v_hat.shape)}, x {tuple(x.shape)}")
     bad = ~(torch.isfinite(x_hat) & torch.isfinite(v_hat)).flatten(2).all(-1)  # (N, T)
-    if bad.any():
+    if bad.any() and not diverged_ok:
         n, t = (int(i) for i in bad.nonzero()[0])
         raise FloatingPointError(f"the prediction is not finite from trajectory {n}, frame {t}")
     num = (x_hat - x).square().flatten(2).sum(-1) + (v_hat - v).square().flatten(2).sum(-1)
@@ -29,7 +32,7 @@ def relative_error(x_hat: torch.Tensor, v_hat: torch.Tensor, x: torch.Tensor, v:
     if (den == 0).any():
         n, t = (int(i) for i in (den == 0).nonzero()[0])
         raise ValueError(f"true state of trajectory {n} at frame {t} is zero: the relative error is undefined")
-    return (num / den).sqrt()
+    return (num / den).sqrt().masked_fill(bad, float("inf"))
 
 
 def trajectory_error(rel: torch.Tensor, steps: int = 5) -> torch.Tensor:

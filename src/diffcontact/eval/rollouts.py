@@ -43,15 +43,43 @@ def ground_truth(folder: str | Path, split: str = "test", frames: int | None = N
 
 
 def predict(net: nn.Module, x0: torch.Tensor, v0: torch.Tensor, frames: int, batch: int = 100):
-    """A model's rollout in float64 from x0, v0 (N, P, d): xs, vs (N, frames, P, d), ``batch`` trajectories at once."""
+    """A model's rollout in float64 from x0, v0 (N, P, d): xs, vs (N, frames, P, d), ``batch`` trajectories at once.
+
+    A model that diverges (FloatingPointError: a non-finite state) is rolled out again one trajectory at a time,
+    and a diverging trajectory keeps its frames up to the last finite one; the frames after it are NaN."""
     net = net.to(torch.float64)
     xs, vs = [], []
     with torch.no_grad():
         for i in range(0, x0.shape[0], batch):
-            x, v = net(x0[i : i + batch].double(), v0[i : i + batch].double(), frames)
+            xb, vb = x0[i : i + batch].double(), v0[i : i + batch].double()
+            try:
+                x, v = net(xb, vb, frames)
+            except FloatingPointError:
+                x, v = (torch.cat(t) for t in zip(*(_finite_prefix(net, xb[j : j + 1], vb[j : j + 1], frames)
+                                                     for j in range(len(xb)))))  # fmt: skip
             xs.append(x.detach())
             vs.append(v.detach())
     return torch.cat(xs), torch.cat(vs)
+
+
+def _finite_prefix(net: nn.Module, x0: torch.Tensor, v0: torch.Tensor, frames: int):
+    """One trajectory's rollout (1, frames, P, d), NaN from the first frame the model cannot reach finitely (the
+    longest finite rollout, found by bisection on the number of frames)."""
+    try:
+        return net(x0, v0, frames)
+    except FloatingPointError:
+        pass
+    good, bad = 1, frames  # (frame 0 is the given state)
+    while bad - good > 1:
+        mid = (good + bad) // 2
+        try:
+            net(x0, v0, mid)
+            good = mid
+        except FloatingPointError:
+            bad = mid
+    x, v = net(x0, v0, good)
+    pad = torch.full((1, frames - good, *x.shape[2:]), float("nan"), dtype=x.dtype)
+    return torch.cat([x, pad], 1), torch.cat([v, pad], 1)
 
 
 def rollout_split(
