@@ -257,8 +257,9 @@ def evaluate(
     err5, energy = m["trajectory_error"], m["energy"]
     half = "n/a" if err5["ci95"] is None else f"{err5['ci95']:.3g}"
     typer.echo(f"{m['task']} {m['model']}: {err5['steps']}-step error {err5['mean']:.4g} ± {half} (95 %, "
-               f"{m['n_trajectories']} trajectories); energy within {energy['max_rel_deviation_max']:.3%} "
-               f"over {energy['frames']} frames -> {run}/eval/")  # fmt: skip
+               f"{m['n_trajectories']} trajectories); energy within {energy['max_rel_deviation_max']:.3g} of the "
+               f"energy in motion over {energy['frames']} frames; {m['diverged']['trajectories']} trajectories "
+               f"diverged -> {run}/eval/")  # fmt: skip
 
 
 @app.command("reproduce")
