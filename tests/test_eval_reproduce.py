@@ -21,7 +21,7 @@ TASKS, MODELS = ["BP5-e", "BP5"], ["CM-CD-CLNN", "MLP-CD-CLNN"]
 def resumed(tmp_path_factory):
     out = tmp_path_factory.mktemp("reproduce") / "out"
     args = ["reproduce", "--quick", "--out", str(out), "--jobs", "1"]
-    args += [a for t in TASKS for a in ("--tasks", t)] + [a for m in MODELS for a in ("--models", m)]
+    args += ["--tasks", TASKS[0], "-t", TASKS[1], "--models", ",".join(MODELS)]  # (repeated, or comma-separated)
     env = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE")
     proc = subprocess.Popen(
         [sys.executable, "-m", "diffcontact.cli", *args],

@@ -262,11 +262,20 @@ def evaluate(
                f"diverged -> {run}/eval/")  # fmt: skip
 
 
+def _split(values: list[str]) -> list[str]:
+    """Values of a repeatable option, each of which may also be a comma-separated list."""
+    return [v.strip() for value in values for v in value.split(",") if v.strip()]
+
+
 @app.command("reproduce")
 def reproduce(
-    tasks: list[str] = typer.Option([], "--tasks", "-t", help="Tasks (default: the 8 benchmark tasks)."),
-    models: list[str] = typer.Option([], "--models", "-m", help="Models (default: the 4 contact models, 3 baselines)."),
-    seeds: list[int] = typer.Option([0], "--seeds", "-s", help="Seeds of each (task, model)."),
+    tasks: list[str] = typer.Option(
+        [], "--tasks", "-t", help="Tasks, repeated or comma-separated: -t BP5-e -t CP3 or -t BP5-e,CP3 (default: all)."
+    ),
+    models: list[str] = typer.Option(
+        [], "--models", "-m", help="Models, repeated or comma-separated (default: the 4 contact models, 3 baselines)."
+    ),
+    seeds: list[str] = typer.Option(["0"], "--seeds", "-s", help="Seeds of each (task, model), e.g. -s 0,1,2."),
     out: str = typer.Option("reproduction", "--out", help="Folder of the runs, figures and report.md."),
     quick: bool = typer.Option(False, "--quick", help="Tiny datasets and one epoch: the pipeline in minutes."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process each)."),
@@ -280,14 +289,20 @@ def reproduce(
     Resumable: evaluated runs are skipped, an interrupted training continues from its last checkpoint."""
     import sys
 
+    from diffcontact.errors import ConfigError
     from diffcontact.eval.reproduce import reproduce as run_matrix
     from diffcontact.threads import available_cpus
 
     per_run = threads or max(1, available_cpus() // max(jobs, 1))
     _threads(per_run)  # (this process generates the datasets; each run has its own process)
     with _user_errors():
+        tasks, models = _split(tasks), _split(models)
+        try:
+            seed_list = [int(x) for x in _split(seeds)]
+        except ValueError as err:
+            raise ConfigError(f"--seeds {seeds}: not integers") from err
         run_matrix(
-            tasks, models, seeds, out, quick=quick, jobs=jobs, threads=per_run, data=data or None, echo=typer.echo,
+            tasks, models, seed_list, out, quick=quick, jobs=jobs, threads=per_run, data=data or None, echo=typer.echo,
             command=" ".join(["diffcontact", *sys.argv[1:]]),
         )  # fmt: skip
 
