@@ -70,7 +70,10 @@ def test_a_resumed_run_ends_bit_identical_to_an_uninterrupted_one(data_root, who
     optimiser state and learned values to the bit, and the loss curves of both sessions."""
     _killed_at_epoch(monkeypatch, 2, out=tmp_path / "cut", data_root=data_root, **SETTINGS)
     assert _state(tmp_path / "cut")["epoch"] == 1
+    first_session = _state(tmp_path / "cut")["counters"]["seconds"]  # (the wall time of the first session)
+    assert first_session > 0
     resumed = train_run("BP1", out=tmp_path / "cut", resume=True, progress=False)
+    assert resumed["wall_time_s"] > first_session  # (the training's time over both sessions)
     _same_end(whole, tmp_path / "cut")
     learned = json.loads((whole / "learned.json").read_text())
     for key in ("mu", "e", "mass_ratio"):

@@ -14,6 +14,7 @@ solver failures are each process's own and are summed over the processes (``tota
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 
 import lightning.pytorch as pl
@@ -66,6 +67,8 @@ class ContactLightningModule(pl.LightningModule):
         self._failures_before: Counter[str] = Counter()  # (restored from a checkpoint)
         self.skipped_steps = 0  # (optimiser steps skipped: the same on every process)
         self.forward_failures = 0  # (this process's)
+        self.seconds_before = 0.0  # (the wall time of a resumed run's earlier sessions, from its checkpoint)
+        self._fit_started = time.perf_counter()
         net = build_model(
             self.task,
             model,
@@ -212,15 +215,24 @@ class ContactLightningModule(pl.LightningModule):
         cosine = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=self.hparams.lr / 100)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": cosine, "interval": "epoch"}}
 
+    def on_fit_start(self) -> None:
+        self._fit_started = time.perf_counter()
+
+    def training_seconds(self) -> float:
+        """Wall time of the training in s, over all its sessions (a resumed run counts its earlier ones)."""
+        return self.seconds_before + time.perf_counter() - self._fit_started
+
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         totals = self.totals()  # (every process writes its checkpoint dictionary; rank 0 its file)
         checkpoint["counters"] = {
             k: totals[k] for k in ("skipped_steps", "forward_failures", "solver_failures_by_status")
         }
+        checkpoint["counters"]["seconds"] = self.training_seconds()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         counters = checkpoint.get("counters", {})
         self.skipped_steps = counters.get("skipped_steps", 0)
+        self.seconds_before = counters.get("seconds", 0.0)
         # (the run's totals continue on rank 0; checkpoints before the count by status hold the total only)
         first = self._trainer is None or self.global_rank == 0
         old = {"unknown": counters["solver_failures"]} if counters.get("solver_failures") else {}

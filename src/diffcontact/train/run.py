@@ -474,7 +474,7 @@ def train_run(
         summary.update(totals)
         summary["processes"] = processes
         summary["rank"] = trainer.global_rank  # (0: the process that wrote the files)
-        summary["wall_time_s"] = time.perf_counter() - started
+        summary["wall_time_s"] = module.seconds_before + time.perf_counter() - started  # (over all sessions)
         summary["run_dir"] = str(run)
         if trainer.is_global_zero:
             write_json(run / "learned.json", summary)
