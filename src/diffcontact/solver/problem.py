@@ -309,7 +309,9 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
             if attempt == 2:
                 lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
                 gamma[better] = gamma_try[better]
-                result.status[wrong & (natural > acceptable_tol)] = _MAX_ITER  # (a failure, not a wrong answer)
+                fresh = better[stalled[better] & high_mu[better]]  # (answers of stalled elements: checked too)
+                natural[fresh] = _natural(A64, q64, mu64, lower64, active64, d, gamma, T, result.z, fresh)
+                result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
     failed = is_failure(result.status)
     z = result.z
     if failed.any():
