@@ -68,3 +68,21 @@ def test_natural_residual_agrees_with_the_stress_scripts():
         f = rng.standard_normal(q.shape) * rng.choice([0.0, 1.0, 1e-6], q.shape)
         ours = optimality.natural_residual(A, q, mu, lower, active, f, d, np.arange(50))
         np.testing.assert_allclose(ours, stress.residual(A, q, mu, lower, active, f, d), rtol=1e-9, atol=1e-15)
+
+
+def test_gradients_at_large_mu_match_finite_differences():
+    """μ 10 … 1e3, among them answers re-solved with γ rescaled (not those of μ ≳ 1e4: docs/scaling.md)."""
+    A, q, mu, lower, active = (torch.from_numpy(a) for a in _batch(1, "large_mu", 2, 3, B=40))
+    qq = q.clone().requires_grad_()
+    f, info = solve_cone_qp(A, qq, mu, on_failure="count", return_info=True)
+    w = torch.randn(f.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    (g_q,) = torch.autograd.grad((w * f).sum(), qq)
+    eps = 1e-6
+    for i in range(q.shape[-1]):
+        dq = torch.zeros_like(q)
+        dq[:, i] = eps
+        (fp, ip), (fm, im) = (solve_cone_qp(A, q + s * dq, mu, on_failure="count", return_info=True) for s in (1, -1))
+        fd = (w * (fp - fm)).sum(-1) / (2 * eps)
+        ok = ~(info.failed | ip.failed | im.failed)
+        assert ok.sum() >= 38
+        torch.testing.assert_close(g_q[ok, i], fd[ok], rtol=1e-4, atol=1e-6 * float(fd.abs().max()))

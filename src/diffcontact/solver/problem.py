@@ -32,6 +32,7 @@ ROUNDING_TOL = 1e-13  # polishing reached rounding level: converged without a pa
 POLISH_STEPS = 3  # factorisations per polishing pass
 START_MARGIN = 0.1  # how far inside the cones the first start lies: measured over 0.001 … 3, K = 1 … 19, d = 2, 3
 ROBUST_MARGIN = 1.0  # CVXOPT's, the start of the retries: slower on average, more robust
+MU_CAP = 1e4  # the last attempt: failed elements with a larger μ solved with μ capped at this (measured 1e3 … 1e5)
 # (plain ints: an IntEnum member costs a µs per access in Python 3.11)
 _CONVERGED, _INACCURATE, _MAX_ITER = int(Status.CONVERGED), int(Status.INACCURATE), int(Status.MAX_ITER)
 assert _CONVERGED == 0  # (``not status.any()``: all converged)
@@ -312,6 +313,10 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
                 fresh = better[stalled[better] & high_mu[better]]  # (answers of stalled elements: checked too)
                 natural[fresh] = _natural(A64, q64, mu64, lower64, active64, d, gamma, T, result.z, fresh)
                 result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
+    capped = np.zeros(mu64.shape, dtype=bool)
+    if check:
+        _solve_capped(A64, q64, mu64, lower64, active64, d, passes, options, acceptable_tol, result, T, S, gamma,
+                      sigma, lower_scale, capped)  # fmt: skip
     failed = is_failure(result.status)
     z = result.z
     if failed.any():
@@ -328,7 +333,50 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
     sol = ScaledSolution(A64, q64, T, S, gamma, lower_scale, slide, z, result)
     if not A.dtype.is_floating_point:
         A = A.to(torch.float64)
+    if capped.any():  # (∂f/∂μ of the capped problem is not the problem's: 0 beyond the cap, as for a sticking contact)
+        mu = torch.where(torch.from_numpy(capped), mu.detach(), mu)
     return ImplicitConeQP.apply(A, q, mu, lower, sol), result
+
+
+def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, result, T, S, gamma, sigma,
+                  lower_scale, capped):  # fmt: skip
+    """The last attempt of ``_solve_with_retries``: its elements still at MAX_ITER with some μ > ``MU_CAP`` solved
+    with μ capped at ``MU_CAP`` (a scaled problem far better conditioned); an answer replaces theirs (in ``result``
+    and the scaling's T, S, gamma, sigma, lower_scale, result.P, in place) only where it is usable and passes the
+    natural-residual check of the problem with the true μ, and ``capped`` (B, K) marks its contacts beyond the cap.
+    (Exact where those contacts stick or separate; a contact sliding at the cap fails the check unless the
+    difference is below ``acceptable_tol``.)"""
+    rows = np.flatnonzero((result.status == _MAX_ITER) & (mu > MU_CAP).any(-1))
+    if not len(rows):
+        return
+    data = (A[rows], q[rows], np.minimum(mu[rows], MU_CAP), lower[rows], active[rows])
+    _, P, c, l_hat, T_c, S_c, gamma_c, sigma_c, lower_scale_c, on_q, on_l, _ = scaling.scale_batch(
+        *data, contact_dims(d)
+    )
+    out = lanes.IPMResult.empty(P, on_q, on_l, d)
+    idx = np.arange(len(rows))
+    for tols in passes:
+        lanes.solve(P, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=START_MARGIN, out=out)
+        status = out.status[idx]
+        idx = idx[(status == _INACCURATE) | (status == _MAX_ITER)]
+        if not len(idx):
+            break
+    f = gamma_c[:, None] * T_c * out.z
+    natural = optimality.natural_residual(data[0], data[1], mu[rows], data[3], data[4], f, d, np.arange(len(rows)))
+    ok = (out.status <= _INACCURATE) & (natural <= acceptable_tol)
+    take = rows[ok]
+    for name in lanes.IPMResult.OUTPUTS:
+        getattr(result, name)[take] = getattr(out, name)[ok]
+    for full, part in (
+        (result.P, P),
+        (T, T_c),
+        (S, S_c),
+        (gamma, gamma_c),
+        (sigma, sigma_c),
+        (lower_scale, lower_scale_c),
+    ):
+        full[take] = part[ok]
+    capped[take] = mu[take] > MU_CAP
 
 
 def _natural(A, q, mu, lower, active, d, gamma, T, z, rows):
