@@ -313,8 +313,9 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
                 fresh = better[stalled[better] & high_mu[better]]  # (answers of stalled elements: checked too)
                 natural[fresh] = _natural(A64, q64, mu64, lower64, active64, d, gamma, T, result.z, fresh)
                 result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
-    capped = np.zeros(mu64.shape, dtype=bool)
+    capped = None  # ((B, K) bool: contacts of answers solved with μ capped)
     if check:
+        capped = np.zeros(mu64.shape, dtype=bool)
         _solve_capped(A64, q64, mu64, lower64, active64, d, passes, options, acceptable_tol, result, T, S, gamma,
                       sigma, lower_scale, capped)  # fmt: skip
     failed = is_failure(result.status)
@@ -333,7 +334,7 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
     sol = ScaledSolution(A64, q64, T, S, gamma, lower_scale, slide, z, result)
     if not A.dtype.is_floating_point:
         A = A.to(torch.float64)
-    if capped.any():  # (∂f/∂μ of the capped problem is not the problem's: 0 beyond the cap, as for a sticking contact)
+    if capped is not None and capped.any():  # (∂f/∂μ of the capped problem is not ours: 0 beyond the cap, as if stuck)
         mu = torch.where(torch.from_numpy(capped), mu.detach(), mu)
     return ImplicitConeQP.apply(A, q, mu, lower, sol), result
 
