@@ -21,7 +21,7 @@ import torch
 from numba import njit
 
 from diffcontact.errors import ContactSolverError
-from diffcontact.solver import flat, lanes, scaling
+from diffcontact.solver import flat, lanes, optimality, scaling
 from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.implicit import ImplicitConeQP, ScaledSolution
 from diffcontact.solver.status import Status, is_failure
@@ -32,6 +32,7 @@ ROUNDING_TOL = 1e-13  # polishing reached rounding level: converged without a pa
 POLISH_STEPS = 3  # factorisations per polishing pass
 START_MARGIN = 0.1  # how far inside the cones the first start lies: measured over 0.001 … 3, K = 1 … 19, d = 2, 3
 ROBUST_MARGIN = 1.0  # CVXOPT's, the start of the retries: slower on average, more robust
+MU_CAP = 1e4  # the last attempt: failed elements with a larger μ solved with μ capped at this (measured 1e3 … 1e5)
 # (plain ints: an IntEnum member costs a µs per access in Python 3.11)
 _CONVERGED, _INACCURATE, _MAX_ITER = int(Status.CONVERGED), int(Status.INACCURATE), int(Status.MAX_ITER)
 assert _CONVERGED == 0  # (``not status.any()``: all converged)
@@ -245,7 +246,12 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
     from CVXOPT's start, farther inside the cones (``ROBUST_MARGIN``; two rope and BD5 problems of the simulation
     benchmark need it); (3) the elements still at MAX_ITER with a finite iterate, from that start with γ set to
     the size of the stalled iterate (a badly estimated solution size, nearly singular A, can stall the method).
-    Attempts 2 and 3 replace an element's result only where they end with a better (lower) status.  Failed
+    Attempt 3 also takes the usable answers of elements with a friction coefficient above
+    ``optimality.MU_CHECKED`` whose natural residual in unscaled units (``optimality.py``) exceeds ``acceptable_tol``,
+    with γ set to γ·min(1, ‖z‖∞) (the scaling's factor μ makes γ overestimate the solution's size, and the scaled
+    test, relative to max(1, ‖z‖∞), then absolute): its answer replaces theirs where usable with a lower natural
+    residual, and those still above ``acceptable_tol`` become MAX_ITER (a failure, never a wrong answer).
+    Attempts 2 and 3 otherwise replace an element's result only where they end with a better (lower) status.  Failed
     elements (``status.is_failure``) get z = 0, and raise ``ContactSolverError`` if ``on_failure`` is "raise".
     """
     A64, q64, mu64, lower64, active64 = _as_arrays(A, q, mu, lower, active) if arrays is None else arrays
@@ -257,16 +263,27 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
         passes.insert(0, dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL)))
     options = dict(acceptable_tol=acceptable_tol, max_iter=max_iter, refine_tol=IPM_TOL, polish_steps=POLISH_STEPS)
     result = lanes.IPMResult.empty(P, on_q, on_l, d)
+    # (the answers also checked in unscaled units: optimality.py)
+    check = d > 1 and mu64.size > 0 and mu64.max() > optimality.MU_CHECKED
     elements, start_margin, c_try, l_try, gamma_try = np.arange(len(gamma)), START_MARGIN, c, l_hat, gamma
     for attempt in range(3):
         if attempt == 1:
-            if not result.status.any():  # (all CONVERGED, the common case)
+            if not result.status.any() and not check:  # (all CONVERGED, the common case)
                 break
             elements, start_margin = np.flatnonzero(result.status != _CONVERGED), ROBUST_MARGIN
         elif attempt == 2:
-            elements = np.flatnonzero((result.status == _MAX_ITER) & np.isfinite(result.z).all(-1))
+            size = np.abs(result.z).max(-1)
+            stalled = (result.status == _MAX_ITER) & np.isfinite(size)
+            high_mu = (mu64 > optimality.MU_CHECKED).any(-1) if check else np.zeros(len(gamma), dtype=bool)
+            checked = np.flatnonzero((result.status <= _INACCURATE) & high_mu)
+            natural = np.zeros(len(gamma))
+            natural[checked] = _natural(A64, q64, mu64, lower64, active64, d, gamma, T, result.z, checked)
+            wrong = natural > acceptable_tol  # (the answer is inaccurate in the problem's own units)
+            elements = np.flatnonzero(stalled | wrong)
             gamma_try = gamma.copy()
-            gamma_try[elements] *= np.maximum(np.abs(result.z[elements]).max(-1), 1e-6)
+            gamma_try[elements] *= np.where(
+                wrong, np.where(size > 0, np.minimum(size, 1.0), 1e-6), np.maximum(size, 1e-6)
+            )[elements]
             ratio = (gamma / gamma_try)[:, None]  # c, l̂ and ∂l̂/∂lower all scale with 1/γ
             c_try, l_try = c * ratio, l_hat * ratio
         if not len(elements):
@@ -280,12 +297,27 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
             if not len(idx):
                 break
         if attempt > 0:  # keep the better result
-            better = elements[out.status[elements] < result.status[elements]]
+            better = out.status[elements] < result.status[elements]
+            if attempt == 2:  # (a wrong usable answer: a usable one with a lower natural residual)
+                better &= ~wrong[elements]
+                again = elements[wrong[elements] & (out.status[elements] <= _INACCURATE)]
+                now = _natural(A64, q64, mu64, lower64, active64, d, gamma_try, T, out.z, again)
+                better[np.searchsorted(elements, again[now < natural[again]])] = True
+                natural[again] = np.minimum(now, natural[again])
+            better = elements[better]
             for name in lanes.IPMResult.OUTPUTS:
                 getattr(result, name)[better] = getattr(out, name)[better]
             if attempt == 2:
                 lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
                 gamma[better] = gamma_try[better]
+                fresh = better[stalled[better] & high_mu[better]]  # (answers of stalled elements: checked too)
+                natural[fresh] = _natural(A64, q64, mu64, lower64, active64, d, gamma, T, result.z, fresh)
+                result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
+    capped = None  # ((B, K) bool: contacts of answers solved with μ capped)
+    if check:
+        capped = np.zeros(mu64.shape, dtype=bool)
+        _solve_capped(A64, q64, mu64, lower64, active64, d, passes, options, acceptable_tol, result, T, S, gamma,
+                      sigma, lower_scale, capped)  # fmt: skip
     failed = is_failure(result.status)
     z = result.z
     if failed.any():
@@ -302,7 +334,60 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
     sol = ScaledSolution(A64, q64, T, S, gamma, lower_scale, slide, z, result)
     if not A.dtype.is_floating_point:
         A = A.to(torch.float64)
+    if capped is not None and capped.any():  # (∂f/∂μ of the capped problem is not ours: 0 beyond the cap, as if stuck)
+        mu = torch.where(torch.from_numpy(capped), mu.detach(), mu)
     return ImplicitConeQP.apply(A, q, mu, lower, sol), result
+
+
+def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, result, T, S, gamma, sigma,
+                  lower_scale, capped):  # fmt: skip
+    """The last attempt of ``_solve_with_retries``: its elements still at MAX_ITER with some μ > ``MU_CAP`` solved
+    with μ capped at ``MU_CAP`` (a scaled problem far better conditioned); an answer replaces theirs (in ``result``
+    and the scaling's T, S, gamma, sigma, lower_scale, result.P, in place) only where it is usable and passes the
+    natural-residual check of the problem with the true μ, and ``capped`` (B, K) marks its contacts beyond the cap.
+    (Exact where those contacts stick or separate; a contact sliding at the cap fails the check unless the
+    difference is below ``acceptable_tol``.)"""
+    rows = np.flatnonzero((result.status == _MAX_ITER) & (mu > MU_CAP).any(-1))
+    if not len(rows):
+        return
+    data = (A[rows], q[rows], np.minimum(mu[rows], MU_CAP), lower[rows], active[rows])
+    _, P, c, l_hat, T_c, S_c, gamma_c, sigma_c, lower_scale_c, on_q, on_l, _ = scaling.scale_batch(
+        *data, contact_dims(d)
+    )
+    out = lanes.IPMResult.empty(P, on_q, on_l, d)
+    idx = np.arange(len(rows))
+    for tols in passes:
+        lanes.solve(P, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=START_MARGIN, out=out)
+        status = out.status[idx]
+        idx = idx[(status == _INACCURATE) | (status == _MAX_ITER)]
+        if not len(idx):
+            break
+    f = gamma_c[:, None] * T_c * out.z
+    natural = optimality.natural_residual(data[0], data[1], mu[rows], data[3], data[4], f, d, np.arange(len(rows)))
+    ok = (out.status <= _INACCURATE) & (natural <= acceptable_tol)
+    take = rows[ok]
+    for name in lanes.IPMResult.OUTPUTS:
+        getattr(result, name)[take] = getattr(out, name)[ok]
+    for full, part in (
+        (result.P, P),
+        (T, T_c),
+        (S, S_c),
+        (gamma, gamma_c),
+        (sigma, sigma_c),
+        (lower_scale, lower_scale_c),
+    ):
+        full[take] = part[ok]
+    capped[take] = mu[take] > MU_CAP
+
+
+def _natural(A, q, mu, lower, active, d, gamma, T, z, rows):
+    """The relative natural residual (``optimality.natural_residual``) of the answers f = γ·T·z of the elements
+    ``rows`` ((m,) int64) of the problems (A, q, mu, lower, active: the arrays of ``_as_arrays``); returns (m,)."""
+    if not len(rows):
+        return np.zeros(0)
+    f = np.zeros_like(z)
+    f[rows] = gamma[rows, None] * T[rows] * z[rows]
+    return optimality.natural_residual(A, q, mu, lower, active, f, d, rows)
 
 
 def _raise_on_failure(status: np.ndarray, on_failure: str) -> None:

@@ -1,0 +1,88 @@
+"""Large friction coefficients (μ 10 … 1e12): every answer the solver calls usable is optimal in the problem's own
+units, checked by the stress script's independent natural residual (benchmarks/bench_solver_stress.py).
+
+Before the check of ``optimality.py`` the scaled convergence test accepted wrong answers here (the scaling's
+tangential factor μ made γ overestimate the solution's size, and P ill-conditioned): docs/scaling.md.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from diffcontact.solver import Status, optimality, solve_cone_qp
+
+_spec = importlib.util.spec_from_file_location(
+    "bench_solver_stress", Path(__file__).parents[1] / "benchmarks" / "bench_solver_stress.py"
+)
+stress = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(stress)
+
+
+def _batch(seed: int, kind: str, K: int, d: int, B: int = 300, decades: tuple[float, float] | None = None):
+    rng = np.random.default_rng(seed)
+    A, _, q, mu, lower, active = stress.instance(rng, kind, B, K, d)
+    if decades is not None:
+        mu = 10.0 ** rng.uniform(*decades, mu.shape)
+    return A, q, mu, lower, active
+
+
+@pytest.mark.parametrize(
+    "seed, kind, K, d, decades",
+    [
+        (0, "large_mu", 1, 2, None),
+        (1, "large_mu", 2, 3, None),
+        (2, "large_mu", 4, 2, None),
+        (3, "large_mu", 2, 2, (3, 6)),
+        (4, "huge_mu", 2, 3, (6, 12)),
+        (5, "huge_mu", 3, 3, None),
+    ],
+)
+def test_every_usable_answer_at_large_mu_passes_the_natural_residual_check(seed, kind, K, d, decades):
+    A, q, mu, lower, active = _batch(seed, kind, K, d, decades=decades)
+    f, info = solve_cone_qp(
+        *(torch.from_numpy(a) for a in (A, q, mu, lower)),
+        torch.from_numpy(active),
+        on_failure="count",
+        return_info=True,
+    )
+    f = f.numpy()
+    status = info.status.numpy()
+    usable = status <= Status.INACCURATE
+    res = stress.residual(A, q, mu, lower, active, f, d)
+    assert np.isfinite(f).all()
+    assert (res[usable] <= stress.TOL[torch.float64]).all(), f"worst {res[usable].max():.1e}"
+    assert (f[~usable] == 0).all()
+    if kind == "large_mu" and decades is None:  # (μ ≤ 1e3: solved, not merely refused)
+        assert usable.mean() >= 0.99
+
+
+def test_natural_residual_agrees_with_the_stress_scripts():
+    rng = np.random.default_rng(7)
+    for d, kind in ((1, "mixed"), (2, "mixed"), (3, "huge_mu"), (3, "large_mu")):
+        A, q, mu, lower, active = _batch(10 + d, kind, 3, d, B=50)
+        f = rng.standard_normal(q.shape) * rng.choice([0.0, 1.0, 1e-6], q.shape)
+        ours = optimality.natural_residual(A, q, mu, lower, active, f, d, np.arange(50))
+        np.testing.assert_allclose(ours, stress.residual(A, q, mu, lower, active, f, d), rtol=1e-9, atol=1e-15)
+
+
+def test_gradients_at_large_mu_match_finite_differences():
+    """μ 10 … 1e3, among them answers re-solved with γ rescaled (not those of μ ≳ 1e4: docs/scaling.md)."""
+    A, q, mu, lower, active = (torch.from_numpy(a) for a in _batch(1, "large_mu", 2, 3, B=40))
+    qq = q.clone().requires_grad_()
+    f, info = solve_cone_qp(A, qq, mu, on_failure="count", return_info=True)
+    w = torch.randn(f.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    (g_q,) = torch.autograd.grad((w * f).sum(), qq)
+    eps = 1e-6
+    for i in range(q.shape[-1]):
+        dq = torch.zeros_like(q)
+        dq[:, i] = eps
+        (fp, ip), (fm, im) = (solve_cone_qp(A, q + s * dq, mu, on_failure="count", return_info=True) for s in (1, -1))
+        fd = (w * (fp - fm)).sum(-1) / (2 * eps)
+        ok = ~(info.failed | ip.failed | im.failed)
+        assert ok.sum() >= 38
+        torch.testing.assert_close(g_q[ok, i], fd[ok], rtol=1e-4, atol=1e-6 * float(fd.abs().max()))
