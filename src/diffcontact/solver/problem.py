@@ -289,13 +289,7 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
         if not len(elements):
             continue
         out = result if attempt == 0 else lanes.IPMResult.empty(P, on_q, on_l, d)
-        idx = elements
-        for tols in passes:
-            lanes.solve(P, c_try, l_try, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
-            status = out.status[idx]
-            idx = idx[(status == _INACCURATE) | (status == _MAX_ITER)]
-            if not len(idx):
-                break
+        _solve_passes(P, c_try, l_try, on_q, on_l, d, elements, passes, options, start_margin, out)
         if attempt > 0:  # keep the better result
             better = out.status[elements] < result.status[elements]
             if attempt == 2:  # (a wrong usable answer: a usable one with a lower natural residual)
@@ -355,13 +349,7 @@ def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, r
         *data, contact_dims(d)
     )
     out = lanes.IPMResult.empty(P, on_q, on_l, d)
-    idx = np.arange(len(rows))
-    for tols in passes:
-        lanes.solve(P, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=START_MARGIN, out=out)
-        status = out.status[idx]
-        idx = idx[(status == _INACCURATE) | (status == _MAX_ITER)]
-        if not len(idx):
-            break
+    _solve_passes(P, c, l_hat, on_q, on_l, d, np.arange(len(rows)), passes, options, START_MARGIN, out)
     f = gamma_c[:, None] * T_c * out.z
     natural = optimality.natural_residual(data[0], data[1], mu[rows], data[3], data[4], f, d, np.arange(len(rows)))
     ok = (out.status <= _INACCURATE) & (natural <= acceptable_tol)
@@ -473,3 +461,14 @@ def _frictionless_slide_limit(z, A, q, T, gamma, zero_mu, d):
     zt = np.where(sliding, -zk[..., :1] * g / np.maximum(g_norm, 1e-300), zk[..., 1:])
     speed = np.where(sliding[..., 0], g_norm[..., 0], 0.0)
     return np.ascontiguousarray(np.concatenate([zk[..., :1], zt], -1).reshape(B, n)), speed
+
+
+def _solve_passes(P, c, l_hat, on_q, on_l, d, idx, passes, options, start_margin, out) -> None:
+    """Solve the elements ``idx`` into ``out``, pass after pass of ``passes`` (their tolerances), each pass only on
+    the elements the previous left INACCURATE or MAX_ITER."""
+    for tols in passes:
+        lanes.solve(P, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
+        status = out.status[idx]
+        idx = idx[(status == _INACCURATE) | (status == _MAX_ITER)]
+        if not len(idx):
+            break
