@@ -350,8 +350,7 @@ def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, r
     )
     out = lanes.IPMResult.empty(P, on_q, on_l, d)
     _solve_passes(P, c, l_hat, on_q, on_l, d, np.arange(len(rows)), passes, options, START_MARGIN, out)
-    f = gamma_c[:, None] * T_c * out.z
-    natural = optimality.natural_residual(data[0], data[1], mu[rows], data[3], data[4], f, d, np.arange(len(rows)))
+    natural = _natural(data[0], data[1], mu[rows], data[3], data[4], d, gamma_c, T_c, out.z, np.arange(len(rows)))
     ok = (out.status <= _INACCURATE) & (natural <= acceptable_tol)
     take = rows[ok]
     for name in lanes.IPMResult.OUTPUTS:
