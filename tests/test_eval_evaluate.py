@@ -74,6 +74,7 @@ def test_a_trained_run_writes_metrics_figures_and_gif(trained):
     assert len(m["error_curve"]) == 8 and m["error_curve"][0] == 0.0 and m["error_curve"][4] > 0
     assert m["config"]["args"]["model"] == "CM-CD-CLNN" and "torch" in m["versions"]
     assert m["learned"]["e"]["true"][0] == pytest.approx(0.8)
+    assert m["seconds"] > 0  # (the evaluation's wall time, shown in the reproduction report)
 
 
 def test_errors_are_one_line_and_name_the_problem(trained, tmp_path):

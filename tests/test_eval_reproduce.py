@@ -80,8 +80,16 @@ def test_the_quick_report_has_every_section_and_a_row_for_every_run(resumed):
     for name in ("fig3_errors.png", "fig4_curves.png", "fig5_energy.png"):
         assert (out / "figures" / name).stat().st_size > 0
         assert f"](figures/{name})" in text
+    assert "| training (s) | evaluation (s) |" in text and "| — | — |" not in text.split("## Table 2")[0]
     with pytest.raises(ConfigError, match="holds a quick reproduction: give another --out for a full one"):
         reproduce(TASKS, MODELS, [0], out, quick=False)
+
+
+def test_energy_deviations_are_shown_readably():
+    from diffcontact.eval.report import _pct
+
+    assert (_pct(0.01234), _pct(2.5), _pct(float("inf"))) == ("1.23%", "250.00%", "diverged")
+    assert _pct(4.5e83) == "4.5e+85 %"  # (a model that left the table: no 86-digit percentage)
 
 
 def test_bad_arguments_and_the_time_left():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import torch
@@ -46,6 +47,7 @@ def evaluate_run(
     """
     from diffcontact.eval import animate, plots
 
+    started = time.perf_counter()
     loaded = load_run(run, task)
     run, name = Path(run), loaded.task_name
     folder = Path(data_root or loaded.config["args"].get("data_root", "data")) / name
@@ -104,6 +106,7 @@ def evaluate_run(
         system, xs, xh, hit = loaded.task.system, ro.x[shown].numpy(), ro.x_hat[shown].numpy(), ro.contact[shown]
         animate.rollout_strip(system, {"truth": xs, loaded.model_name: xh}, hit.numpy(), out / "rollout.png", ro.dt)
         animate.compare_gif(system, xs, xh, hit.numpy(), out / "rollout.gif", ro.dt)
+    metrics["seconds"] = time.perf_counter() - started  # (the evaluation's wall time, pictures included)
     write_json(out / "metrics.json", metrics)  # (last: its presence marks a finished evaluation)
     return metrics
 

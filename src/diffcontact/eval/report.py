@@ -45,18 +45,22 @@ def _err(mean: float, half: float | None) -> str:
 
 
 def _times(run: Path) -> tuple[float | None, float | None]:
-    """Training wall time (learned.json) and the whole cell's (reproduce.json: start-up, training, evaluation) of a
-    run, in s (None: unknown)."""
-    train = evaluate = None
-    try:
-        train = json.loads((run / "learned.json").read_text())["wall_time_s"]
-    except (OSError, ValueError, KeyError):
-        pass
-    try:
-        evaluate = json.loads((run / "reproduce.json").read_text())["seconds"]
-    except (OSError, ValueError, KeyError):
-        pass
-    return train, evaluate
+    """Training wall time (learned.json, over all the sessions of a resumed run) and the evaluation's
+    (eval/metrics.json) of a run, in s (None: unknown, e.g. an evaluation written before its time was recorded)."""
+    times = []
+    for file, key in (("learned.json", "wall_time_s"), ("eval/metrics.json", "seconds")):
+        try:
+            times.append(float(json.loads((run / file).read_text())[key]))
+        except (OSError, ValueError, KeyError, TypeError):
+            times.append(None)
+    return times[0], times[1]
+
+
+def _pct(x: float) -> str:
+    """A relative deviation as a percentage; "diverged" for +inf, powers of ten beyond 1000 %."""
+    if x == float("inf"):
+        return "diverged"
+    return f"{x:.2%}" if x < 10 else f"{100 * x:.1e} %"
 
 
 def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: list[int], settings: dict) -> Path:
@@ -161,7 +165,7 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
         for m in models:
             v = first[t, m]
             e = v["energy"] if v else None
-            shown = f"{e['frames']} | {e['max_rel_deviation_mean']:.2%} | {e['max_rel_deviation_max']:.2%}" if e else (
+            shown = f"{e['frames']} | {_pct(e['max_rel_deviation_mean'])} | {_pct(e['max_rel_deviation_max'])}" if e else (
                 f"— | {missing[t, m]} | —"
             )  # fmt: skip
             lines.append(f"| {t} | {m} | {shown} |")
@@ -176,7 +180,7 @@ def _runs_table(out, tasks, models, seeds, metrics) -> list[str]:
     lines = [
         "## Runs",
         "",
-        "| task | model | seed | status | training (s) | whole run (s) | 5-step error |",
+        "| task | model | seed | status | training (s) | evaluation (s) | 5-step error |",
         "|---|---|---|---|---|---|---|",
     ]
     for t in tasks:
