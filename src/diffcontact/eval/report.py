@@ -165,9 +165,10 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
         for m in models:
             v = first[t, m]
             e = v["energy"] if v else None
-            shown = f"{e['frames']} | {_pct(e['max_rel_deviation_mean'])} | {_pct(e['max_rel_deviation_max'])}" if e else (
-                f"— | {missing[t, m]} | —"
-            )  # fmt: skip
+            if e:
+                shown = f"{e['frames']} | {_pct(e['max_rel_deviation_mean'])} | {_pct(e['max_rel_deviation_max'])}"
+            else:
+                shown = f"— | {missing[t, m]} | —"
             lines.append(f"| {t} | {m} | {shown} |")
     lines.append("")
     lines += _rollouts(out, tasks, models, seed, first, missing, figures)
