@@ -17,7 +17,16 @@ from typer.testing import CliRunner
 from diffcontact.cli import app
 from diffcontact.errors import ConfigError
 from diffcontact.solver import lanes
-from diffcontact.threads import available_cpus, cgroup_cpu_limit, quiet_waiting_env, set_threads, thread_env
+from diffcontact.threads import (
+    JOB_MEMORY,
+    available_cpus,
+    available_memory,
+    cgroup_cpu_limit,
+    default_jobs,
+    quiet_waiting_env,
+    set_threads,
+    thread_env,
+)
 
 
 @pytest.fixture
@@ -55,6 +64,17 @@ def test_available_cpus_takes_the_smaller_of_affinity_and_quota():
     assert available_cpus({0, 1, 2, 3}, 0.3) == 1
     assert available_cpus({5}, 8.0) == 1
     assert available_cpus() == min(len(os.sched_getaffinity(0)), available_cpus(read_cgroup=False)) >= 1
+
+
+def test_default_jobs_one_per_cpu_as_memory_allows(tmp_path):
+    assert default_jobs(4, 100 * JOB_MEMORY) == 4
+    assert default_jobs(64, 10.5 * JOB_MEMORY) == 10  # (memory, not CPUs, limits a big machine)
+    assert default_jobs(4, 0.2 * JOB_MEMORY) == 1
+    info = tmp_path / "meminfo"
+    info.write_text("MemTotal:       24000000 kB\nMemAvailable:   3000000 kB\n")
+    assert available_memory(info) == 3000000 * 1024
+    assert available_memory(tmp_path / "missing") is None
+    assert 1 <= default_jobs() <= available_cpus()
 
 
 def test_quiet_waiting_keeps_the_users_setting():

@@ -191,7 +191,13 @@ def train(
     ),
     num_nodes: int = typer.Option(None, "--num-nodes", help="Machines (default 1): docs/scaling.md."),
     accelerator: str = typer.Option("cpu", "--accelerator", help="cpu (gloo between processes), gpu (NCCL) or auto."),
-    threads: int = THREADS,
+    threads: int = typer.Option(
+        1,
+        "--threads",
+        min=1,
+        help="Threads of torch, numba and the contact solver in each process. Default 1: a step's tensors are small, "
+        "and on 2 idle cores 2 threads made it 1.5x slower (docs/speed.md); use more cores with --devices.",
+    ),
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
     """Train a model on a task's chunks; writes checkpoints, logs and learned.json into the run directory."""
@@ -278,10 +284,20 @@ def reproduce(
     seeds: list[str] = typer.Option(["0"], "--seeds", "-s", help="Seeds of each (task, model), e.g. -s 0,1,2."),
     out: str = typer.Option("reproduction", "--out", help="Folder of the runs, figures and report.md."),
     quick: bool = typer.Option(False, "--quick", help="Tiny datasets and one epoch: the pipeline in minutes."),
-    jobs: int = typer.Option(1, "--jobs", "-j", help="Runs at a time (one process each)."),
+    jobs: int = typer.Option(
+        None,
+        "--jobs",
+        "-j",
+        min=1,
+        help="Runs at a time, one process each (default: one per available CPU, as memory allows: 1.5 GB each).",
+    ),
     data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick)."),
     threads: int = typer.Option(
-        None, "--threads", min=1, help="Threads of each run (default: the CPUs available to this process / --jobs)."
+        None,
+        "--threads",
+        min=1,
+        help="Threads of each run (default: the CPUs available to this process / --jobs, "
+        "so 1 with the default --jobs: runs in parallel processes use the cores better than threads, docs/speed.md).",
     ),
 ) -> None:
     """Train (or reuse) and evaluate every task x model x seed, then write OUT/report.md beside the published values.
@@ -291,9 +307,10 @@ def reproduce(
 
     from diffcontact.errors import ConfigError
     from diffcontact.eval.reproduce import reproduce as run_matrix
-    from diffcontact.threads import available_cpus
+    from diffcontact.threads import available_cpus, default_jobs
 
-    per_run = threads or max(1, available_cpus() // max(jobs, 1))
+    jobs = jobs or default_jobs()
+    per_run = threads or max(1, available_cpus() // jobs)
     _threads(per_run)  # (this process generates the datasets; each run has its own process)
     with _user_errors():
         tasks, models = _split(tasks), _split(models)

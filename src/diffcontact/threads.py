@@ -72,6 +72,28 @@ def available_cpus(affinity: set[int] | None = None, quota: float | None = None,
     return n
 
 
+JOB_MEMORY = 1.5e9  # bytes a training run's process may need (measured: 0.6 GB resident for the benchmark's tasks)
+
+
+def available_memory(meminfo: Path = Path("/proc/meminfo")) -> float | None:
+    """The memory available to new processes in bytes (``MemAvailable`` of /proc/meminfo), or None if unknown."""
+    try:
+        for line in meminfo.read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return float(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def default_jobs(cpus: int | None = None, memory: float | None = None) -> int:
+    """Processes to run at once (≥ 1): one per available CPU (:func:`available_cpus`), fewer if the available memory
+    (:func:`available_memory`) holds fewer than :data:`JOB_MEMORY` each."""
+    cpus = available_cpus() if cpus is None else cpus
+    memory = available_memory() if memory is None else memory
+    return max(1, min(cpus, int(memory // JOB_MEMORY))) if memory is not None else max(1, cpus)
+
+
 def set_threads(threads: int | None = None) -> int:
     """Use ``threads`` threads (None: :func:`available_cpus`) in torch, numba and the solver's pool; returns it.
 
