@@ -101,3 +101,33 @@ def test_bad_arguments_and_the_time_left():
     assert progress.left() is None
     progress.durations, progress.done = [10.0, 20.0], 2
     assert progress.left() == pytest.approx(2 * 15.0 / 2)  # (2 runs to go, 15 s each, 2 at a time)
+    # with expected times (earlier runs of the same model): a slow baseline counts as slow from the start
+    progress = Progress(3, 0, 1, lambda _: None, expected={"a": 100.0, "b": 10.0}, pending=["a", "b", "c"])
+    assert progress.left() is None  # ("c" has no estimate until a run finishes)
+    progress.expected["c"] = 1.0
+    assert progress.left() == pytest.approx(111.0)
+    progress.start("a")
+    progress.running["a"] -= 40.0  # (a has run for 40 s)
+    assert progress.left() == pytest.approx(60.0 + 11.0, abs=0.1)
+
+
+def test_expected_times_come_from_the_same_models_earlier_runs(tmp_path):
+    import json
+
+    from diffcontact.eval.reproduce import Cell, expected_seconds
+
+    for task, model, seconds in (("A", "slow", 1000.0), ("A", "fast", 100.0), ("B", "fast", 300.0)):
+        run = tmp_path / "runs" / task / model / "seed0"
+        (run / "eval").mkdir(parents=True)
+        (run / "learned.json").write_text(json.dumps({"wall_time_s": seconds}))
+        (run / "eval" / "metrics.json").write_text(json.dumps({"seconds": 10.0}))
+    cells = [
+        Cell("B", "slow", 0, tmp_path / "x", "train"),
+        Cell("A", "fast", 1, tmp_path / "y", "evaluate"),
+        Cell("B", "new", 0, tmp_path / "z", "train"),
+    ]
+    got = expected_seconds(tmp_path, cells)
+    overall, task_b = (1000 + 100 + 300) / 3, 300.0
+    assert got["B/slow/seed0"] == pytest.approx(1000 * task_b / overall + 10.0)  # (the model's time, task-scaled)
+    assert got["A/fast/seed1"] == pytest.approx(10.0)  # (an evaluation alone)
+    assert "B/new/seed0" not in got  # (nothing to go by: the session's mean is used)

@@ -124,10 +124,23 @@ def _duration(seconds: float) -> str:
 
 
 class Progress:
-    """Which runs are going, how many are done, and the time left estimated from the runs finished so far."""
+    """Which runs are going, how many are done, and the time left.
 
-    def __init__(self, total: int, done: int, jobs: int, echo: Callable[[str], None]):
+    ``expected``: the expected seconds of a run by label (:func:`expected_seconds`: earlier runs of the same model
+    and task in OUT); a run without one counts as the mean of the runs finished in this session."""
+
+    def __init__(
+        self,
+        total: int,
+        done: int,
+        jobs: int,
+        echo: Callable[[str], None],
+        expected: dict[str, float] | None = None,
+        pending: list[str] | None = None,
+    ):
         self.total, self.done, self.jobs, self.echo = total, done, jobs, echo
+        self.expected = dict(expected or {})
+        self.waiting = list(pending) if pending is not None else []  # (labels not started yet)
         self.started = time.perf_counter()
         self.running: dict[str, float] = {}
         self.durations: list[float] = []
@@ -136,6 +149,8 @@ class Progress:
     def start(self, label: str) -> None:
         with self.lock:
             self.running[label] = time.perf_counter()
+            if label in self.waiting:
+                self.waiting.remove(label)
         self.show()
 
     def finish(self, label: str, status: str) -> None:
@@ -146,13 +161,16 @@ class Progress:
         self.show()
 
     def left(self) -> float | None:
-        """Estimated seconds left: the mean run time of this session over the runs not finished, spread over jobs."""
-        if not self.durations:
+        """Estimated seconds left, spread over the jobs: each run's expected time (else the mean run time of this
+        session), less what a running one has had; None while a run has no estimate."""
+        mean = sum(self.durations) / len(self.durations) if self.durations else None
+        now = time.perf_counter()
+        unnamed = self.total - self.done - len(self.running) - len(self.waiting)  # (counted, not named)
+        guesses = [self.expected.get(k, mean) for k in self.waiting] + [mean] * unnamed
+        running = [(self.expected.get(k, mean), now - t) for k, t in self.running.items()]
+        if any(g is None for g in guesses) or any(g is None for g, _ in running):
             return None
-        mean, now = sum(self.durations) / len(self.durations), time.perf_counter()
-        pending = self.total - self.done - len(self.running)
-        busy = sum(max(mean - (now - t), 0.0) for t in self.running.values())
-        return (pending * mean + busy) / self.jobs
+        return (sum(guesses) + sum(max(g - spent, 0.0) for g, spent in running)) / self.jobs
 
     def show(self) -> None:
         with self.lock:
@@ -163,6 +181,42 @@ class Progress:
         self.echo(
             f"[{self.done}/{self.total} done] running: {going}; elapsed {_duration(now - self.started)}; left: {eta}"
         )
+
+
+def expected_seconds(out: Path, cells: list[Cell]) -> dict[str, float]:
+    """The expected seconds of each cell to do, from the finished runs in OUT/runs: a training, the mean training
+    time (learned.json, all sessions) of the same model's runs scaled by the task's (the mean over its finished
+    runs relative to all runs' mean), plus an evaluation's mean time (eval/metrics.json); an evaluation alone, the
+    latter.  Cells with nothing to go by are left out."""
+    trained, evaluated = [], []
+    for learned in out.glob("runs/*/*/seed*/learned.json"):
+        task, model = learned.parts[-4], learned.parts[-3]
+        try:
+            trained.append((task, model, float(json.loads(learned.read_text())["wall_time_s"])))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        try:
+            evaluated.append(float(json.loads((learned.parent / "eval" / "metrics.json").read_text())["seconds"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    evaluation = sum(evaluated) / len(evaluated) if evaluated else None
+    if not trained:
+        return {}
+    overall = sum(t for *_, t in trained) / len(trained)
+
+    def mean(items: list[float]) -> float | None:
+        return sum(items) / len(items) if items else None
+
+    expected = {}
+    for c in cells:
+        if c.todo == "evaluate" and evaluation is not None:
+            expected[c.label] = evaluation
+        elif c.todo == "train":
+            model = mean([t for _, m, t in trained if m == c.model])
+            task = mean([t for k, _, t in trained if k == c.task])
+            if model is not None:
+                expected[c.label] = model * (task / overall if task else 1.0) + (evaluation or 0.0)
+    return expected
 
 
 def _settings_file(out: Path, quick: bool) -> dict:
@@ -229,7 +283,9 @@ def reproduce(
         if c.todo == "missing":
             echo(f"{c.label}: {c.note}")
     done = sum(c.todo == "done" for c in cells)
-    progress = Progress(len(todo) + done, done, jobs, echo)
+    progress = Progress(
+        len(todo) + done, done, jobs, echo, expected_seconds(out, todo), pending=[c.label for c in todo]
+    )
 
     def job(cell: Cell) -> dict:
         progress.start(cell.label)
