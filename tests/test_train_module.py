@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import lightning.pytorch as pl
+import pytest
 import torch
 from test_models import _colliding_chunks
 from torch.utils.data import DataLoader, TensorDataset
@@ -79,3 +80,35 @@ def test_a_step_whose_forward_pass_fails_is_skipped_and_counted_with_a_warning(c
     warned = [r.getMessage() for r in caplog.records if "training step skipped" in r.getMessage()]
     assert warned == ["epoch 0 batch 0: training step skipped: its forward pass failed (BP1 frame 3: non-finite "
                       "position or velocity in batch element 0)"]  # fmt: skip
+
+
+def test_the_mu_pull_moves_mu_off_the_sticking_plateau():
+    """With μ far above the truth every contact sticks and the data give μ no gradient (a plateau); the L1 pull
+    (``mu_l1``) gives a constant one, which Adam follows at its full rate, and only in training."""
+    X, V = _colliding_chunks(dc.build_task("BP1"), 16, seed=0)
+    batch = (X.double(), V.double())
+
+    def descend(mu_l1: float) -> tuple[float, float]:
+        module = ContactLightningModule("BP1", hidden=8, layers=1, mu_l1=mu_l1, dtype="float64").train()
+        for p in module.net.parameters():
+            p.requires_grad_(False)
+        mu = module.learned.mu_raw
+        mu.requires_grad_(True)
+        with torch.no_grad():
+            mu.fill_(50.0)
+        data = module.loss(batch) - mu_l1 * module.learned.mu.sum()
+        (grad,) = torch.autograd.grad(data, mu)
+        opt = torch.optim.Adam([mu], lr=0.05)
+        for _ in range(4):
+            opt.zero_grad()
+            module.loss(batch).backward()
+            opt.step()
+        return float(grad.abs().max()), float(mu.detach().max())
+
+    plateau_grad, mu_without = descend(0.0)
+    assert plateau_grad < 1e-12 and mu_without == pytest.approx(50.0, abs=1e-9)  # (every contact sticks)
+    _, mu_with = descend(1e-6)
+    assert mu_with == pytest.approx(50.0 - 4 * 0.05, abs=1e-3)  # (Adam's steps: lr each, whatever the pull's size)
+    module = ContactLightningModule("BP1", hidden=8, layers=1, mu_l1=1.0, dtype="float64").eval()
+    plain = ContactLightningModule("BP1", hidden=8, layers=1, dtype="float64").eval()
+    assert torch.equal(module.loss(batch), plain.loss(batch))  # (validation: the data's loss alone)

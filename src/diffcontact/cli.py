@@ -173,6 +173,12 @@ def train(
     mu_coef_lr: float = typer.Option(
         None, "--mu-coef-lr", help="Learning rate of μ relative to the others (default: the preset's or --coef-lr)."
     ),
+    mu_l1: float = typer.Option(
+        None,
+        "--mu-l1",
+        help="Weight of an L1 pull of the learned μ toward 0 in the training loss (+ mu_l1·Σμ; default: the "
+        "preset's). It moves μ off the plateau where every contact of a slot sticks (docs/results.md).",
+    ),
     reg: float = typer.Option(
         None, "--reg", help="CMr models: the regularisation A + reg·I of the effective mass (default 0.01)."
     ),
@@ -208,7 +214,7 @@ def train(
         summary = train_run(
             task, model, preset=preset, epochs=epochs, seed=seed, out=out or None, data_root=data,
             batch_size=batch_size, lr=lr, schedule=schedule, coef_lr=coef_lr,
-            mu_coef_lr=mu_coef_lr, reg=reg, train_loss=train_loss,
+            mu_coef_lr=mu_coef_lr, mu_l1=mu_l1, reg=reg, train_loss=train_loss,
             mu_transform="softplus" if smooth else None, e_transform="sigmoid" if smooth else None, resume=resume,
             progress=progress, devices=devices, num_nodes=num_nodes, accelerator=accelerator,
         )  # fmt: skip

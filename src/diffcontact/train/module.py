@@ -52,6 +52,7 @@ class ContactLightningModule(pl.LightningModule):
         schedule: str = "constant",
         coef_lr: float = 1.0,
         mu_coef_lr: float | None = None,
+        mu_l1: float = 0.0,
         reg: float | None = None,
         train_loss: str = "l1",
     ):
@@ -127,7 +128,12 @@ class ContactLightningModule(pl.LightningModule):
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
         px, pv = self.net(x[:, 0], v[:, 0], x.shape[1])
         err = (lambda r: r.abs()) if kind == "l1" else torch.square
-        return 0.5 * (err(px - x).mean() + err(pv - v).mean())
+        loss = 0.5 * (err(px - x).mean() + err(pv - v).mean())
+        if self.training and self.hparams.get("mu_l1", 0.0) and self.learns_contacts:
+            # a constant pull of every μ toward 0: where all of a slot's contacts stick the data give μ no gradient
+            # (a plateau above the truth), and Adam moves μ down at its full rate until they slide again
+            loss = loss + self.hparams.mu_l1 * self.learned.mu.sum()
+        return loss
 
     def training_step(self, batch, batch_idx: int):
         opt = self.optimizers()

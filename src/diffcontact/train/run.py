@@ -72,6 +72,7 @@ PRESETS = {
         e_transform="projected",
         coef_lr=1 / 6,
         mu_coef_lr=None,
+        mu_l1=0.0,
     ),
     "published": dict(
         epochs=1000,
@@ -82,6 +83,7 @@ PRESETS = {
         e_transform="hardsigmoid",
         coef_lr=1.0,
         mu_coef_lr=None,
+        mu_l1=0.0,
     ),
 }
 
@@ -178,7 +180,7 @@ class _ShuffleState(pl.Callback):
 
 # The settings a run records in config.json ("args") that a resumed run must keep (epochs may grow).
 RUN_SETTINGS = (
-    "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "reg",
+    "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "mu_l1", "reg",
     "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
 )  # fmt: skip
 ACCELERATORS = ("cpu", "gpu", "auto")
@@ -202,6 +204,7 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
         raise ConfigError(f"--resume: {run} is not a readable training run (config.json, {last.name}): {err}") from err
     recorded.setdefault("train_loss", "l1")  # (runs from before the setting existed trained on L1)
     recorded.setdefault("devices", 1)  # (and on one process)
+    recorded.setdefault("mu_l1", 0.0)  # (and without a pull on μ)
     recorded.setdefault("num_nodes", 1)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
@@ -231,11 +234,11 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
 
 def _check_numbers(settings: dict, **more) -> None:
     """ConfigError naming the first training setting out of its domain: lr, coef_lr, mu_coef_lr finite > 0;
-    weight_decay, reg finite >= 0; batch_size an integer >= 1 (None: not given)."""
+    weight_decay, reg, mu_l1 finite >= 0; batch_size an integer >= 1 (None: not given)."""
     import math
 
     for key, value in {**settings, **more}.items():
-        if value is None or key not in ("lr", "coef_lr", "mu_coef_lr", "weight_decay", "reg", "batch_size"):
+        if value is None or key not in ("lr", "coef_lr", "mu_coef_lr", "mu_l1", "weight_decay", "reg", "batch_size"):
             continue
         if key == "batch_size":
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -277,6 +280,7 @@ def train_run(
     e_transform: str | None = None,
     coef_lr: float | None = None,
     mu_coef_lr: float | None = None,
+    mu_l1: float | None = None,
     reg: float | None = None,
     train_loss: str | None = None,
     dtype: str | None = None,
@@ -328,7 +332,8 @@ def train_run(
         if resume:
             given = dict(
                 task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
-                coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, reg=reg, weight_decay=weight_decay, mu_transform=mu_transform,
+                coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, mu_l1=mu_l1, reg=reg, weight_decay=weight_decay,
+                mu_transform=mu_transform,
                 e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
                 num_nodes=num_nodes,
             )  # fmt: skip
@@ -356,6 +361,7 @@ def train_run(
                 e_transform=e_transform,
                 coef_lr=coef_lr,
                 mu_coef_lr=mu_coef_lr,
+                mu_l1=mu_l1,
             )
             if settings["epochs"] < 1:
                 raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
@@ -371,6 +377,7 @@ def train_run(
                 schedule=settings["schedule"],
                 coef_lr=settings["coef_lr"],
                 mu_coef_lr=settings["mu_coef_lr"],
+                mu_l1=settings["mu_l1"],
                 reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
                 weight_decay=1e-4 if weight_decay is None else weight_decay,
                 train_loss=train_loss or "l1",
@@ -425,7 +432,16 @@ def train_run(
             train_loss=args["train_loss"],
             **{
                 k: args[k]
-                for k in ("lr", "weight_decay", "mu_transform", "e_transform", "schedule", "coef_lr", "mu_coef_lr")
+                for k in (
+                    "lr",
+                    "weight_decay",
+                    "mu_transform",
+                    "e_transform",
+                    "schedule",
+                    "coef_lr",
+                    "mu_coef_lr",
+                    "mu_l1",
+                )
             },
         )
         loggers = [
