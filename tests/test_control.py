@@ -20,6 +20,14 @@ def small_table(goal=None) -> Billiards:
     return Billiards.build(balls=3, frames=60, cue_position=(0.4, 0.5), cue_velocity=(1.0, 0.0), goal=goal)
 
 
+def reachable_table() -> Billiards:
+    """The reduced table with its goal where the last ball ends for another shot than θ0."""
+    probe = small_table()
+    with torch.no_grad():
+        x, _, _ = probe.rollout(torch.tensor([[0.4, 0.495, 1.15, 0.08]], dtype=F64))
+    return small_table(goal=tuple(x[0, -1, -1].tolist()))
+
+
 def loss_of(problem, theta: torch.Tensor) -> torch.Tensor:
     r = problem.residual(theta[None])[0]
     return (r * r).sum()
@@ -69,13 +77,31 @@ def test_batched_throws_equal_single_throws():
 
 
 def test_billiards_reduced_problem_loss_falls_by_90_percent():
-    probe = small_table()
-    with torch.no_grad():  # a reachable goal: where the last ball ends for another shot
-        x, _, _ = probe.rollout(torch.tensor([[0.4, 0.495, 1.15, 0.08]], dtype=F64))
-    shot = small_table(goal=tuple(x[0, -1, -1].tolist()))
+    shot = reachable_table()
     hist = levenberg_marquardt(shot.residual, shot.theta0, 12, scale=torch.full((4,), 0.1, dtype=F64), radius=0.5)
     assert hist.loss <= 0.1 * hist.losses[0], hist.losses
     assert hist.losses[0] > 1e-5  # (the start is not already at the goal)
+
+
+def test_billiards_search_lines_are_seeded_and_its_speeds_give_the_predicted_distances():
+    """The search's shot (p, s·v) ends where (p, v) is at s·T (no walls, no forces): simulating each candidate at
+    its chosen speed gives the distance the search predicted from the top-speed path."""
+    shot = reachable_table()
+    seeded = [shot.aim_lines(16, torch.Generator().manual_seed(seed), speed=1.5) for seed in (3, 3, 4)]
+    lines = seeded[0]
+    assert torch.equal(lines, seeded[1]) and not torch.equal(lines[1:], seeded[2][1:])
+    assert torch.allclose(lines[:, 2:].norm(dim=1), torch.full((16,), 1.5, dtype=F64))
+    assert torch.allclose(lines[0, 2:] / 1.5, shot.theta0[2:] / shot.theta0[2:].norm())  # (θ0's line first)
+    found = shot.search(16, seed=3, rounds=2, elites=4)
+    assert (found.distances[1:] >= found.distances[:-1]).all() and 16 <= len(found.thetas) <= 32
+    assert torch.isfinite(found.distances).all()  # (dropped: shots that never move the last ball)
+    assert len(found.nearest) == 2 and found.nearest[1] <= found.nearest[0] == float(found.distances[0])
+    with torch.no_grad():
+        r = shot.residual(found.thetas[:6])
+    assert torch.allclose(r.norm(dim=1), found.distances[:6], rtol=0, atol=1e-9), (r.norm(dim=1), found.distances)
+    with torch.no_grad():
+        r0 = shot.residual(shot.theta0[None])
+    assert float(found.distances[0]) < 0.1 * float(r0.norm())  # (the search beats the task file's shot)
 
 
 @pytest.mark.parametrize("mode", ["hit", "vertical"])
@@ -103,6 +129,23 @@ def test_levenberg_marquardt_solves_a_linear_least_squares_problem_in_one_step()
     hist = levenberg_marquardt(lambda t: t @ A.T - b, torch.zeros(3, dtype=F64), 5, tol=1e-20, damping=1e-14)
     assert hist.simulations == 2 and hist.loss < 1e-20  # (the minimum-norm solution of A θ = b)
     assert torch.allclose(hist.theta, torch.linalg.pinv(A) @ b, atol=1e-10)
+
+
+def test_levenberg_marquardt_moves_several_starts_at_once_and_keeps_the_best():
+    """Two starts in one batch: one on a flat piece (zero gradient: it stays), one that solves A θ = b."""
+    A = torch.tensor([[2.0, 1.0, 0.0], [0.0, 1.0, 3.0]], dtype=F64)
+    b = torch.tensor([1.0, -2.0], dtype=F64)
+
+    def residual(t):
+        return torch.where(t[:, :1] > 0, t @ A.T - b, torch.full_like(t[:, :2], 5.0))
+
+    starts = torch.tensor([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=F64)
+    hist = levenberg_marquardt(residual, starts, 5, tol=1e-20, damping=1e-14)
+    assert hist.simulations == 2 and hist.trajectories == 3 and hist.loss < 1e-20
+    expect = starts[1] + torch.linalg.pinv(A) @ (b - A @ starts[1])  # (the minimum-norm step from start 2)
+    assert torch.allclose(hist.theta, expect, atol=1e-10)
+    flat = levenberg_marquardt(residual, starts[:1], 5)
+    assert flat.stop == "the gradient is zero" and flat.simulations == 1 and flat.loss == 50.0
 
 
 def test_infeasible_controls_have_infinite_residuals_and_are_errors_at_the_start():
@@ -142,11 +185,29 @@ def test_control_billiards_command_writes_its_outputs(tmp_path):
     from diffcontact.cli import app
 
     args = ["control", "billiards", "--balls", "3", "--frames", "40", "--out", str(tmp_path), "--no-progress"]
-    res = CliRunner().invoke(app, [*args, "--max-simulations", "3", "--no-gif"])
+    res = CliRunner().invoke(app, [*args, "--max-simulations", "3", "--no-gif", "--search-shots", "0"])
     assert res.exit_code == 0, res.output
     result = json.loads((tmp_path / "billiards.json").read_text())
     assert result["stop"] == "the gradient is zero" and result["simulations"] == 1
-    assert result["config"]["balls"] == 3 and "final_state" not in result["published"]
+    assert result["config"]["balls"] == 3 and "final_state" not in result["published"] and result["search"] is None
     assert (tmp_path / "billiards_loss.png").stat().st_size > 0
     res = CliRunner().invoke(app, [*args, "--optimiser", "sgd"])
     assert res.exit_code == 2 and "optimiser = 'sgd' is not one of" in res.output
+
+
+def test_control_billiards_command_searches_then_optimises(tmp_path):
+    """The global stage counts as one simulation of all its shots, with its seed in the JSON."""
+    from typer.testing import CliRunner
+
+    from diffcontact.cli import app
+
+    args = ["control", "billiards", "--balls", "3", "--frames", "60", "--out", str(tmp_path), "--no-progress"]
+    more = ["--max-simulations", "4", "--no-gif", "--search-shots", "12", "--search-rounds", "2", "--seed", "5"]
+    res = CliRunner().invoke(app, [*args, *more])
+    assert res.exit_code == 0, res.output
+    result = json.loads((tmp_path / "billiards.json").read_text())
+    assert result["search"]["shots"] == 24 and result["config"]["seed"] == 5
+    assert result["simulations"] == 2 + result["optimisation"]["simulations"] <= 4
+    assert result["trajectories"] == 24 + result["optimisation"]["trajectories"]
+    assert result["losses"][:2] == pytest.approx([d**2 for d in result["search"]["nearest_per_round_m"]])
+    assert result["best_loss"] <= result["losses"][2] == pytest.approx(result["losses"][1], rel=1e-6, abs=1e-18)

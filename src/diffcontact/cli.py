@@ -375,11 +375,17 @@ def control_billiards(
     out: str = typer.Option("out/control", "--out", help="Folder of billiards_loss.png, billiards_shot.gif, .json."),
     optimiser: str = typer.Option("lm", "--optimiser", help="lm (Levenberg-Marquardt on x_last(T) - goal) or adam."),
     max_simulations: int = typer.Option(200, "--max-simulations", help="Simulations at most (the published 200)."),
-    tol: float = typer.Option(1e-4, "--tol", help="Stop once the last ball is within this distance of the goal (m)."),
+    tol: float = typer.Option(1e-6, "--tol", help="Stop once the last ball is within this distance of the goal (m)."),
     trials: int = typer.Option(8, "--trials", help="lm: step lengths tried per simulation, in one batch."),
     lr: float = typer.Option(0.01, "--lr", help="Adam's learning rate (in units of 0.1 m and 0.1 m/s)."),
     balls: int = typer.Option(11, "--balls", help="Balls on the table (the cue ball and a triangle of balls - 1)."),
     frames: int = typer.Option(0, "--frames", help="Frames simulated (0 = the task's 1024)."),
+    search_shots: int = typer.Option(
+        256, "--search-shots", help="Global stage: cue lines per round, in one batch (0 = start from the spec's θ0)."
+    ),
+    search_rounds: int = typer.Option(3, "--search-rounds", help="Global stage: rounds (simulations)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the search's cue lines."),
+    starts: int = typer.Option(4, "--starts", help="lm: search candidates it starts from at once, nearest first."),
     gif: bool = typer.Option(True, help="Write the GIF of the final shot."),
     published: bool = typer.Option(True, help="Also simulate the published final cue state for the loss plot."),
     threads: int = THREADS,
@@ -392,10 +398,12 @@ def control_billiards(
     with _user_errors():
         r = run_billiards(
             out, balls=balls, frames=frames or None, optimiser=optimiser, max_simulations=max_simulations, tol=tol,
-            trials=trials, lr=lr, gif=gif, published=published, echo=typer.echo, progress=progress,
+            trials=trials, lr=lr, search_shots=search_shots, search_rounds=search_rounds, seed=seed, starts=starts,
+            gif=gif, published=published, echo=typer.echo, progress=progress,
         )  # fmt: skip
     typer.echo(f"billiards: distance {r['final_distance_m']:.3g} m after {r['simulations']} simulations "
-               f"({r['steps_accepted']} steps; {r['stop']}), cue (p, v) = {[round(t, 5) for t in r['best_theta']]}, "
+               f"({r['trajectories']} shots, {r['steps_accepted']} steps; {r['stop']}), "
+               f"cue (p, v) = {[round(t, 5) for t in r['best_theta']]}, "
                f"{r['wall_time_s']:.0f} s -> {out}")  # fmt: skip
 
 

@@ -80,15 +80,18 @@ def levenberg_marquardt(
     patience: int = 3,
     progress: Callable[[History], None] | None = None,
 ) -> History:
-    """Minimise ‖r(θ)‖² from θ0 (n,) by damped Gauss–Newton steps, at most ``max_simulations`` simulations; stop
-    once the loss is <= ``tol``, or when ``patience`` simulations in a row lowered it by less than the fraction
-    ``stall`` (a minimum of the smooth piece of the loss the search is in).
+    """Minimise ‖r(θ)‖² from θ0 (n,), or from K starts at once (θ0 (K, n)), by damped Gauss–Newton steps, at most
+    ``max_simulations`` simulations; stop once the loss is <= ``tol``, or when every start has had ``patience``
+    simulations in a row that lowered its loss by less than the fraction ``stall`` (a minimum of the smooth piece of
+    the loss it is in) or has a zero gradient.
 
-    The step in scaled variables z = θ/scale (``scale`` (n,), the size of a meaningful change of each entry) is
-    δz = −J̃ᵀ(J̃J̃ᵀ + λI)⁻¹r with J̃ = J·diag(scale) (the minimum-norm Gauss–Newton step when m < n and λ → 0), with
-    λ = ``damping``·tr(J̃J̃ᵀ)/m. Each simulation tries ``trials`` lengths along it in one batch: min(‖δz‖, ρ)·2^−k,
-    k < trials, ρ the trust radius (first ``radius``). The best candidate is kept if it lowers the loss, and ρ
-    becomes twice its length; otherwise ρ shrinks by 2^trials. Non-finite candidates count as no descent.
+    The step of a start in scaled variables z = θ/scale (``scale`` (n,), the size of a meaningful change of each
+    entry) is δz = −J̃ᵀ(J̃J̃ᵀ + λI)⁻¹r with J̃ = J·diag(scale) (the minimum-norm Gauss–Newton step when m < n and
+    λ → 0), with λ = ``damping``·tr(J̃J̃ᵀ)/m. Each simulation tries ``trials`` lengths along it, for every start
+    still moving, in one batch: min(‖δz‖, ρ)·2^−k, k < trials, ρ the start's trust radius (first ``radius``). A
+    start's best candidate is kept if it lowers its loss, and ρ becomes twice its length; otherwise ρ shrinks by
+    2^trials. Non-finite candidates count as no descent. The history records, per simulation, the best candidate
+    of all starts.
     """
     if max_simulations < 1:
         raise ConfigError(f"max_simulations = {max_simulations} is not >= 1")
@@ -96,53 +99,75 @@ def levenberg_marquardt(
         raise ConfigError(f"radius = {radius!r} is not > 0")
     if trials < 1:
         raise ConfigError(f"trials = {trials} is not >= 1")
-    scale = torch.ones_like(theta0) if scale is None else scale
+    theta = theta0.detach().clone().reshape(-1, theta0.shape[-1])  # (K, n)
+    K = theta.shape[0]
+    scale = torch.ones_like(theta[0]) if scale is None else scale
     hist = History()
-    theta = theta0.detach().clone()
-    r, J = _start(residual, theta)
-    hist.record(theta, float(r @ r), True)
+    r, J = _start(residual, theta)  # (K, m), (K, m, n)
+    loss = (r * r).sum(1)
+    first = int(torch.argmin(loss))
+    hist.record(theta[first], float(loss[first]), True, K)
     if progress is not None:
         progress(hist)
     halves = 2.0 ** -torch.arange(trials, dtype=theta.dtype)
-    slow = 0
+    rho = torch.full((K,), float(radius), dtype=theta.dtype)
+    slow = torch.zeros(K, dtype=torch.long)
+    moving = torch.ones(K, dtype=torch.bool)
+    eye = torch.eye(r.shape[1], dtype=r.dtype)
     while hist.simulations < max_simulations and hist.loss > tol:
         Js = J * scale
-        JJ = Js @ Js.T
-        if not float(JJ.trace()) > 0:
-            hist.stop = "the gradient is zero"
+        JJ = Js @ Js.transpose(1, 2)
+        trace = JJ.diagonal(dim1=1, dim2=2).sum(1)
+        moving &= trace > 0
+        if not moving.any():
+            hist.stop = hist.stop or "the gradient is zero"
             break
-        lam = damping * float(JJ.trace()) / J.shape[0]
-        dz = -Js.T @ torch.linalg.solve(JJ + lam * torch.eye(J.shape[0], dtype=J.dtype), r)
-        lengths = min(float(dz.norm()), radius) * halves
-        cands = theta + scale * (dz / dz.norm()) * lengths[:, None]
+        idx = moving.nonzero()[:, 0]
+        lam = damping * trace[idx] / r.shape[1]
+        rhs = torch.linalg.solve(JJ[idx] + lam[:, None, None] * eye, r[idx])
+        dz = -(Js[idx].transpose(1, 2) @ rhs[..., None])[..., 0]  # (A, n)
+        norm = dz.norm(dim=1)
+        lengths = torch.minimum(norm, rho[idx])[:, None] * halves  # (A, trials)
+        cands = theta[idx, None] + scale * (dz / norm[:, None])[:, None] * lengths[..., None]  # (A, trials, n)
         try:
-            r2, J2 = residual_and_jacobian(residual, cands)
-            losses = (r2 * r2).sum(1)
+            r2, J2 = residual_and_jacobian(residual, cands.reshape(-1, theta.shape[1]))
+            losses = (r2 * r2).sum(1).reshape(len(idx), trials)
         except FloatingPointError:
-            losses = torch.full((trials,), float("inf"), dtype=theta.dtype)
-        best = int(torch.argmin(losses))
-        keep = bool(losses[best] < hist.loss)
-        slow = 0 if float(losses[best]) < (1 - stall) * hist.loss else slow + 1
-        hist.record(cands[best], float(losses[best]), keep, trials)
-        if keep:
-            theta, r, J, radius = cands[best], r2[best], J2[best], 2 * float(lengths[best])
-        else:
-            radius = float(lengths[-1]) / 2
+            r2 = J2 = None
+            losses = torch.full((len(idx), trials), float("inf"), dtype=theta.dtype)
+        best = torch.argmin(losses, 1)  # (A,)
+        best_loss = losses[torch.arange(len(idx)), best]
+        keep = best_loss < loss[idx]
+        slow[idx] = torch.where(best_loss < (1 - stall) * loss[idx], 0, slow[idx] + 1)
+        top = int(torch.argmin(best_loss))
+        hist.record(cands[top, best[top]], float(best_loss[top]), bool(keep[top]), len(idx) * trials)
+        if r2 is not None:
+            pick = torch.arange(len(idx))
+            rows = pick * trials + best
+            theta[idx] = torch.where(keep[:, None], cands[pick, best], theta[idx])
+            r[idx] = torch.where(keep[:, None], r2[rows], r[idx])
+            J[idx] = torch.where(keep[:, None, None], J2[rows], J[idx])
+            loss[idx] = torch.where(keep, best_loss, loss[idx])
+        rho[idx] = torch.where(keep, 2 * lengths[torch.arange(len(idx)), best], lengths[:, -1] / 2)
+        moving &= slow < patience
         if progress is not None:
             progress(hist)
-        if slow >= patience:
-            hist.stop = f"stalled: {patience} simulations in a row lowered the loss by < {stall:g} of it"
+        if not moving.any():
+            what = f"{patience} simulations in a row lowered the loss by < {stall:g} of it"
+            hist.stop = f"stalled: {what}" if K == 1 else f"stalled: every start had {what}"
             break
     hist.stop = hist.stop or ("tolerance reached" if hist.loss <= tol else "simulation budget used")
     return hist
 
 
 def _start(residual: Residual, theta0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """r (m,) and J (m, n) at θ0 (n,); InfeasibleControlError if r is not finite there."""
-    r, J = residual_and_jacobian(residual, theta0[None])
-    if not torch.isfinite(r).all():
-        raise InfeasibleControlError(f"the initial control θ0 = {theta0.tolist()} is infeasible (residual {r[0]})")
-    return r[0], J[0]
+    """r (K, m) and J (K, m, n) at the starts θ0 (K, n); InfeasibleControlError if r is not finite at one."""
+    r, J = residual_and_jacobian(residual, theta0)
+    bad = ~torch.isfinite(r).all(1)
+    if bad.any():
+        at = theta0[bad][0]
+        raise InfeasibleControlError(f"the initial control θ0 = {at.tolist()} is infeasible (residual {r[bad][0]})")
+    return r, J
 
 
 def adam(

@@ -1,8 +1,8 @@
 """The control commands: optimise, report the loss per simulation with a progress bar, write the outputs.
 
 ``diffcontact control billiards`` (spec G.1, H.7) and ``diffcontact control throw`` (spec G.2) call
-:func:`run_billiards` and :func:`run_throw`. No choice is random (θ0 is the spec's, the optimisers are
-deterministic), so there is no seed.
+:func:`run_billiards` and :func:`run_throw`. The one random choice, the billiards search's cue lines, takes a
+seed (default 0, recorded in the JSON); the optimisers are deterministic.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ PUBLISHED_BILLIARDS = {1: 0.04548, 2: 0.02902}  # spec H.7: the first two iterat
 PUBLISHED_FINAL_STATE = (0.12431, 0.44550, 0.48702, 0.03730)  # spec G.1: main billiards.ipynb, iteration 199
 BILLIARDS_SCALE = (0.1, 0.1, 0.1, 0.1)  # θ = (p, v) in units of 0.1 m and 0.1 m/s
 BILLIARDS_RADIUS = 0.1  # LM's first step: at most 0.01 m / 0.01 m/s (the published SGD's first step is ~0.01)
+SEARCH_SPEED = 1.5  # m/s: the global stage's shots; time scaling gives every slower speed on their lines
 
 
 def optimise(
@@ -93,9 +94,13 @@ def run_billiards(
     frames: int | None = None,
     optimiser: str = "lm",
     max_simulations: int = 200,
-    tol: float = 1e-4,
+    tol: float = 1e-6,
     trials: int = 8,
     lr: float = 0.01,
+    search_shots: int = 256,
+    search_rounds: int = 3,
+    seed: int = 0,
+    starts: int = 4,
     gif: bool = True,
     published: bool = True,
     echo: Callable[[str], None] | None = print,
@@ -104,17 +109,53 @@ def run_billiards(
     """Optimise the cue ball's (p, v) so that the last ball ends within ``tol`` m of the goal, at most
     ``max_simulations`` simulations; write OUT/billiards_loss.png, billiards_shot.gif and billiards.json.
 
-    ``published``: also simulate the published final cue state (spec G.1) with the published end-of-step scheme,
-    for the loss curve's reference point at iteration 200 (on the spec's table only, as are the published points).
-    Returns the JSON's content."""
+    With ``search_shots`` > 0 the first ``search_rounds`` simulations are the global stage
+    (:meth:`Billiards.search`: that many cue lines per round, seeded by ``seed``, in one batch each), and LM starts
+    from its ``starts`` nearest candidates at once (one batch per simulation; Adam from the nearest); with 0 it
+    starts from the task file's θ0 (the published setting). ``published``: also simulate the published final cue
+    state (spec G.1) with the published end-of-step scheme, for the loss curve's reference point at iteration 200
+    (on the spec's table only, as are the published points). Returns the JSON's content."""
+    if search_shots < 0:
+        raise ConfigError(f"search_shots = {search_shots} is not >= 0")
+    if starts < 1:
+        raise ConfigError(f"starts = {starts} is not >= 1")
+    if search_shots and max_simulations <= search_rounds:
+        raise ConfigError(
+            f"max_simulations = {max_simulations} is not > search_rounds = {search_rounds} (the search's simulations "
+            "and the optimiser's start)"
+        )
     out = Path(out)
     t0 = time.perf_counter()
     shot = Billiards.build(balls=balls, frames=frames)
     scale = torch.tensor(BILLIARDS_SCALE, dtype=torch.float64)
-    hist = optimise(
-        shot.residual, shot.theta0, optimiser, max_simulations, tol, scale, BILLIARDS_RADIUS, trials, lr, "billiards",
-        echo, progress,
-    )  # fmt: skip
+    curve: list[float] = []
+    search = None
+    thetas = shot.theta0[None]
+    if search_shots:
+        found = shot.search(search_shots, seed, SEARCH_SPEED, rounds=search_rounds)
+        if not len(found.thetas):
+            raise ConfigError(f"no feasible shot among the search's {search_shots} (seed {seed})")
+        curve += [d**2 for d in found.nearest]
+        thetas = found.thetas[:starts]
+        search = {
+            "shots_per_round": search_shots,
+            "rounds": search_rounds,
+            "shots": search_shots * search_rounds,
+            "seed": seed,
+            "speed_m_s": SEARCH_SPEED,
+            "nearest_per_round_m": found.nearest,
+            "nearest_distances_m": found.distances[:8].tolist(),
+            "starts": thetas.tolist(),
+            "wall_time_s": time.perf_counter() - t0,
+        }
+        if echo is not None:
+            for i, d in enumerate(found.nearest):
+                echo(f"billiards search {i + 1}: {search_shots} shots in one batch, nearest {d:.3g} m from the goal")
+    if optimiser == "adam":
+        thetas = thetas[0]  # (Adam: one start)
+    hist = optimise(shot.residual, thetas, optimiser, max_simulations - len(curve), tol, scale, BILLIARDS_RADIUS,
+                    trials, lr, "billiards", echo, progress)  # fmt: skip
+    curve += hist.losses
     wall = time.perf_counter() - t0
     with torch.no_grad():
         x, hit, _ = shot.rollout(hist.theta[None])
@@ -131,12 +172,24 @@ def run_billiards(
             "tol_m": tol,
             "trials": trials if optimiser == "lm" else 1,
             "lr": lr if optimiser == "adam" else None,
+            "search_shots": search_shots,
+            "search_rounds": search_rounds if search_shots else 0,
+            "seed": seed if search_shots else None,
+            "starts": starts if search_shots else 1,
             "theta0": shot.theta0.tolist(),
             "goal": shot.goal.tolist(),
             "theta": "cue ball (p_x, p_y, v_x, v_y) in m, m/s",
             "loss": "|x_last(T) - goal|^2 in m^2",
         },
-        **_history(hist),
+        "search": search,
+        "optimisation": _history(hist),
+        "losses": curve,
+        "simulations": len(curve),
+        "steps_accepted": sum(hist.accepted) - 1,
+        "trajectories": (search["shots"] if search else 0) + hist.trajectories,
+        "best_theta": hist.theta.tolist(),
+        "best_loss": hist.loss,
+        "stop": hist.stop,
         "final_position": x[0, -1, -1].tolist(),
         "final_distance_m": float((x[0, -1, -1] - shot.goal).norm()),
         "wall_time_s": wall,
@@ -151,8 +204,9 @@ def run_billiards(
         result["published"]["final_state"] = list(PUBLISHED_FINAL_STATE)
         result["published"]["final_state_loss_ours_published_scheme"] = float(r @ r)
         markers["published state at iteration 200, in our simulator"] = {200: float(r @ r)}
+    what = f"search ({search_rounds} x {search_shots} shots) + " if search_shots else ""
     loss_curves(
-        {f"ours: {optimiser.upper()}, time of impact": hist.losses}, out / "billiards_loss.png",
+        {f"ours: {what}{optimiser.upper()}, time of impact": curve}, out / "billiards_loss.png",
         f"billiards ({balls} balls, {shot.task.frames} frames): |x_last(T) - goal|^2", markers,
     )  # fmt: skip
     if gif:
