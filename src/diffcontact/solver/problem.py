@@ -32,6 +32,8 @@ ROUNDING_TOL = 1e-13  # polishing reached rounding level: converged without a pa
 POLISH_STEPS = 3  # factorisations per polishing pass
 START_MARGIN = 0.1  # how far inside the cones the first start lies: measured over 0.001 … 3, K = 1 … 19, d = 2, 3
 ROBUST_MARGIN = 1.0  # CVXOPT's, the start of the retries: slower on average, more robust
+FAR = 1e3  # a minimiser of a flat problem farther than this × its range part is solved again (``_near_least_norm``)
+TIKHONOV = 1e-12  # ... with this curvature (relative) on its flat directions
 MU_CAP = 1e4  # the last attempt: failed elements with a larger μ solved with μ capped at this (measured 1e3 … 1e5)
 # (plain ints: an IntEnum member costs a µs per access in Python 3.11)
 _CONVERGED, _INACCURATE, _MAX_ITER = int(Status.CONVERGED), int(Status.INACCURATE), int(Status.MAX_ITER)
@@ -304,7 +306,10 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
             if attempt == 2:
                 lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
                 gamma[better] = gamma_try[better]
-                fresh = better[stalled[better] & high_mu[better]]  # (answers of stalled elements: checked too)
+                # (answers of stalled elements, every μ: their γ came from an iterate that may have run away along
+                # an unbounded ray, A = 0 with q outside the dual cone; the scaled c then falls below the kernel's
+                # tolerance, absolute where ‖z‖∞ < 1, and noise near z = 0 passes it)
+                fresh = better[stalled[better]]
                 natural[fresh] = _natural(A64, q64, mu64, lower64, active64, d, gamma, T, result.z, fresh)
                 result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
     capped = None  # ((B, K) bool: contacts of answers solved with μ capped)
@@ -399,6 +404,8 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     are not unique: any minimiser (first solve), a point inside their set, that point solved for again,
     differentiably, as the unique minimiser of the problem with curvature on the flat directions centred on it,
     and the move from there to the least-norm one (whose derivative is that of the cone bounding the set).
+    Either way a first minimiser far out along an unbounded set of minimisers is brought back first
+    (``_near_least_norm``).
     """
     if torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower)):
         sub = flats.idx[flats.consistent]
@@ -406,6 +413,10 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
             first, first_result = _solve_with_retries(
                 A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d, *opts
             )
+            first = _near_least_norm(
+                A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d,
+                flats.subset(flats.consistent), first, first_result.status, opts,
+            )  # fmt: skip
             spread, inner = flat.nonunique(
                 first,
                 flats.subset(flats.consistent),
@@ -424,11 +435,39 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     else:
         f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
         treated = flats.consistent
+        f = _near_least_norm(A, q, mu, lower, active, d, flats, f, result.status, opts)
     f, status = flat.minimum_norm(f, flats, mu, lower, active, d, _cone_qp(mu, lower, active, d, opts), sel=treated)
     rows = flats.idx[treated].numpy()
     result.status[rows] = np.maximum(result.status[rows], status.numpy())
     # (a failed element's zeros may have been moved along its flat directions)
     return torch.where(torch.from_numpy(is_failure(result.status))[:, None], torch.zeros_like(f), f), result
+
+
+def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts):
+    """The minimisers f (B, n) of the consistent elements of ``flats`` (a first solve of the batch (A, q, …), whose
+    statuses ``status`` (B,) are updated in place) that lie farther than ``FAR`` times the size of their range part
+    from 0, replaced by a second solve with a curvature ``TIKHONOV``·ref on the flat directions.  Returns f.
+
+    Where the set of minimisers is unbounded (a flat direction inside the cones), the first solve can end anywhere
+    on it: 2e7 times farther than the least-norm point in a stress problem, accurate relative to that size only, so
+    that the move back to the least-norm point left an error of that order (a cone violated by 4 %).  With the
+    curvature the minimiser is unique, within a relative O(``TIKHONOV``) of the least-norm one (Tikhonov's), and
+    the solver's answer is accurate at its scale; ``flat.minimum_norm`` then moves it the rest of the way.
+    """
+    rows = flats.idx[flats.consistent]
+    x = f[rows]
+    range_part = x - (flats.PiN[flats.consistent] @ x[..., None])[..., 0]
+    far = torch.zeros_like(flats.consistent)
+    far[flats.consistent] = x.abs().amax(-1) > FAR * range_part.abs().amax(-1)
+    if not far.any():
+        return f
+    rows = flats.idx[far]
+    A_t = A[rows] + (TIKHONOV * flats.ref[far])[:, None, None] * flats.PiN[far]
+    again, result = _solve_with_retries(A_t, q[rows], mu[rows], lower[rows], active[rows], d, *opts)
+    ok = ~is_failure(result.status)
+    rows_ok = rows[torch.from_numpy(ok)]
+    status[rows_ok.numpy()] = np.maximum(status[rows_ok.numpy()], result.status[ok])
+    return f.index_copy(0, rows_ok, again[torch.from_numpy(ok)].to(f.dtype))
 
 
 def _cone_qp(mu, lower, active, d, opts):
