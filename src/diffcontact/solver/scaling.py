@@ -6,7 +6,9 @@ Per batch element, with contact k's rows i = k·d … k·d + d − 1:
     D_i = 1 on the normal row, μ_k on the tangential ones (every friction cone becomes the unit cone);
     S_i = σ_k = A_nn,k^(−1/2) on active contacts (Jacobi scaling; the largest A_nn where A_nn is negligible), else 0;
     γ = the size of the solution, estimated contact by contact as max(lower, −q_n/A_nn), at least 1e-3 of the
-        scaled linear term (the scaled linear term itself when every contact separates);
+        linear term S·min(D, 1)·q (that term itself when every contact separates): in units of f, without the
+        tangential factor μ > 1, which made γ overestimate the solution's size by up to μ (and the kernel's test,
+        relative to max(1, ‖z‖∞), in effect absolute for the small z that followed: docs/scaling.md);
     P = T A T with T = S·D, plus an identity on inactive rows and on the tangential rows of μ = 0 contacts (which
         have no cone: only the ray z_n ≥ lower remains, their z_t is pinned to 0);
     c = T q / γ;  l̂ = lower / (σ γ), lower bounds below 1e-12 of the solution's scale taken as 0.
@@ -71,7 +73,8 @@ def _scale_range(
                 D = 1.0 if i == 0 else mu[b, k]
                 S[b, k * d + i] = sg if on else 0.0
                 T[b, k * d + i] = S[b, k * d + i] * D
-                c_abs = max(c_abs, abs(T[b, k * d + i] * q[b, k * d + i]))
+                # (the size in units of f: a tangential factor μ > 1 would make γ overestimate it by up to μ)
+                c_abs = max(c_abs, abs(S[b, k * d + i] * min(D, 1.0) * q[b, k * d + i]))
             value = max(lower[b, k] / sg, -S[b, k * d] * q[b, k * d])
             estimate = max(estimate, value if on else 0.0)
         g = max(estimate, 1e-3 * c_abs) if estimate > 0 else c_abs
