@@ -57,7 +57,7 @@ def test_every_usable_answer_at_large_mu_passes_the_natural_residual_check(seed,
     assert np.isfinite(f).all()
     assert (res[usable] <= stress.TOL[torch.float64]).all(), f"worst {res[usable].max():.1e}"
     assert (f[~usable] == 0).all()
-    if kind == "large_mu" and decades is None:  # (μ ≤ 1e3: solved, not merely refused)
+    if decades is None:  # (solved, not merely refused: before the free contacts of μ ≥ 1e4, half of huge_mu failed)
         assert usable.mean() >= 0.99
 
 
@@ -71,7 +71,7 @@ def test_natural_residual_agrees_with_the_stress_scripts():
 
 
 def test_gradients_at_large_mu_match_finite_differences():
-    """μ 10 … 1e3, among them answers re-solved with γ rescaled (not those of μ ≳ 1e4: docs/scaling.md)."""
+    """μ 10 … 1e3, among them answers re-solved with γ rescaled."""
     A, q, mu, lower, active = (torch.from_numpy(a) for a in _batch(1, "large_mu", 2, 3, B=40))
     qq = q.clone().requires_grad_()
     f, info = solve_cone_qp(A, qq, mu, on_failure="count", return_info=True)
@@ -103,3 +103,31 @@ def test_large_mu_answers_pass_the_check_without_it(monkeypatch, seed, K, d):
     assert usable.mean() >= 0.99
     res = stress.residual(A, q, mu, lower, active, f.numpy(), d)
     assert res[usable].max() <= 1e-9, f"worst {res[usable].max():.1e}"
+
+
+@pytest.mark.parametrize("decades", [(4, 6), (6, 8), (8, 12), (12, 100)])
+def test_gradients_at_huge_mu_pass_gradcheck(decades):
+    """μ ≥ 1e4: free contacts (stick, separate) and contacts solved again scaled for sliding (solver/scaling.py),
+    ∂f/∂q, ∂f/∂A and ∂f/∂μ (through log μ: a step relative to μ) against central differences.  Before, the
+    relative error reached 1 at μ ≥ 1e6 (docs/scaling.md)."""
+    rng = np.random.default_rng(int(decades[0]))
+    A, q, mu, lower, active = _batch(20 + int(decades[0]), "huge_mu", 2, 3, B=12, decades=decades)
+    A, q, log_mu = torch.from_numpy(A), torch.from_numpy(q), torch.from_numpy(np.log(mu))
+    f, info = solve_cone_qp(A, q, log_mu.exp(), on_failure="count", return_info=True)
+    assert not info.failed.any()
+    fk = f.view(12, 2, 3)
+    ratio = fk[..., 1:].norm(dim=-1) / (log_mu.exp() * fk[..., 0])  # (1 where the contact slides)
+    if decades[1] <= 8:  # (both kinds of contact in the batch; beyond, f_n = ‖f_t‖/μ is below the test's eyesight)
+        assert (ratio > 1 - 1e-9).any() and (ratio < 0.9).any()
+    w = torch.from_numpy(rng.standard_normal(3 * 3)).reshape(3, 3)
+    w = w @ w.T  # (a direction in A that keeps it symmetric)
+
+    def fn(q_, log_mu_, t):
+        return solve_cone_qp(A + t * w.repeat(2, 2), q_, log_mu_.exp())
+
+    inputs = (
+        q.clone().requires_grad_(),
+        log_mu.clone().requires_grad_(),
+        torch.zeros((), dtype=torch.float64, requires_grad=True),
+    )
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
