@@ -131,3 +131,18 @@ def test_gradients_at_huge_mu_pass_gradcheck(decades):
         torch.zeros((), dtype=torch.float64, requires_grad=True),
     )
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_float32_gradients_of_a_flat_problem_at_huge_mu_are_finite():
+    """A singular A (rank 1 up to rounding: the flat stage, solver/flat.py) with μ = 1e30 in float32: μ² overflowed
+    in float32 in the least-norm stage and every gradient was NaN; they now agree with the float64 ones."""
+    A = [[0.038206037133932114, 0.06487715244293213], [0.06487715244293213, 0.1101670116186142]]
+    q = [0.031850676983594894, 0.054085202515125275]
+    grads = {}
+    for dtype in (torch.float32, torch.float64):
+        inputs = [torch.tensor([x], dtype=dtype, requires_grad=True) for x in (A, q, [1e30], [0.0])]
+        f = solve_cone_qp(*inputs)
+        grads[dtype] = torch.autograd.grad((f * torch.tensor([[1.0, -2.0]], dtype=dtype)).sum(), inputs)
+    for g32, g64 in zip(*grads.values()):
+        assert torch.isfinite(g32).all()
+        torch.testing.assert_close(g32.double(), g64, rtol=1e-4, atol=1e-6)

@@ -448,6 +448,8 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     Either way a first minimiser far out along an unbounded set of minimisers is brought back first
     (``_near_least_norm``).
     """
+    # (the flat stage in float64 whatever the input: μ² of a float32 μ ≥ 2e19 overflows, NaN in its gradient)
+    mu, lower = mu.to(torch.float64), lower.to(torch.float64)
     if torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower)):
         sub = flats.idx[flats.consistent]
         with torch.no_grad():
