@@ -36,6 +36,7 @@ from diffcontact.solver import lanes
 #: leaves the cone (module docstring).  Measured: at 1e6 gradients at μ 1e4 … 1e6 were wrong by up to 3e-5 relative
 #: (2e-9 at 1e4); problems with μ < 1e4 are scaled as before.
 MU_FREE = 1e4
+_NONE_SLIDING = np.zeros((0, 0), dtype=np.bool_)  # (no contact scaled for sliding: nothing allocated)
 
 
 def scale_batch(A, q, mu, lower, active, dims, sliding=None):
@@ -56,7 +57,7 @@ def scale_batch(A, q, mu, lower, active, dims, sliding=None):
         *(np.zeros((B, K), dtype=np.bool_) for _ in range(3)),
     )
     A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu = out
-    sliding = np.zeros((B, K), dtype=np.bool_) if sliding is None else sliding
+    sliding = _NONE_SLIDING if sliding is None else sliding
     lanes.parallel(lambda start, stop: _scale_range(A, q, mu, lower, active, sliding, dims, *out, start, stop), B)
     return A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
 
@@ -87,7 +88,7 @@ def _scale_range(
             sg = 1.0 / math.sqrt(a_nn if a_nn > 1e-12 * a_ref else a_ref)
             sigma[b, k] = sg
             large = on and d > 1 and mu[b, k] >= MU_FREE
-            slides = large and sliding[b, k]
+            slides = large and len(sliding) > 0 and sliding[b, k]
             for i in range(d):
                 r = k * d + i
                 D = (1.0 / mu[b, k] if slides else 1.0) if i == 0 else (1.0 if large else mu[b, k])
@@ -108,7 +109,7 @@ def _scale_range(
         for k in range(K):
             on = active[b, k]
             large = on and d > 1 and mu[b, k] >= MU_FREE
-            free = large and not sliding[b, k]
+            free = large and not (len(sliding) > 0 and sliding[b, k])
             s_n = sigma[b, k] / mu[b, k] if large and not free else sigma[b, k]  # (T_n)
             keep = on and lower[b, k] >= 1e-12 * s_n * g
             low = lower[b, k] if keep else 0.0
