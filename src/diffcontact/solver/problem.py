@@ -506,7 +506,8 @@ def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts):
         return f
     rows = flats.idx[far]
     A_t = A[rows] + (TIKHONOV * flats.ref[far])[:, None, None] * flats.PiN[far]
-    again, result = _solve_with_retries(A_t, q[rows], mu[rows], lower[rows], active[rows], d, *opts)
+    # (a failure keeps the first answer: never raised here)
+    again, result = _solve_with_retries(A_t, q[rows], mu[rows], lower[rows], active[rows], d, *opts[:3], "count")
     ok = ~is_failure(result.status)
     rows_ok = rows[torch.from_numpy(ok)]
     status[rows_ok.numpy()] = np.maximum(status[rows_ok.numpy()], result.status[ok])
