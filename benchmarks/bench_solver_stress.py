@@ -2,6 +2,10 @@
 checked independently, so that a wrong answer reported as converged (a silent failure) is caught.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_solver_stress.py [--total 1000000] [--batch 1000] [--seed 0]
+        [--kinds KIND ...] [--calls N ...]
+
+A silent failure or crash is printed with its call number (and element); ``--calls N`` replays call N of the same
+run alone (the same draws; only that call is solved).
 
 Each batch draws K (1 to 20 contacts, most of them small), d (1, 2 or 3) and one kind of trouble:
 
