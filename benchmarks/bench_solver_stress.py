@@ -2,6 +2,10 @@
 checked independently, so that a wrong answer reported as converged (a silent failure) is caught.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_solver_stress.py [--total 1000000] [--batch 1000] [--seed 0]
+        [--kinds KIND ...] [--calls N ...]
+
+A silent failure or crash is printed with its call number (and element); ``--calls N`` replays call N of the same
+run alone (the same draws; only that call is solved).
 
 Each batch draws K (1 to 20 contacts, most of them small), d (1, 2 or 3) and one kind of trouble:
 
@@ -153,6 +157,9 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1000, help="problems per solver call")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--kinds", nargs="*", default=list(KINDS), choices=KINDS, help="kinds of trouble (all)")
+    parser.add_argument(
+        "--calls", nargs="*", type=int, default=None, help="solve only these calls (numbers as printed) of the run"
+    )
     args = parser.parse_args()
     kinds = args.kinds
     rng = np.random.default_rng(args.seed)
@@ -178,20 +185,22 @@ def main() -> None:
         tensors = [torch.from_numpy(a).to(dtype) for a in (A, q, mu, lower)]
         calls += 1
         done += B
+        if args.calls is not None and calls not in args.calls:  # (replay: the same draws, only these solved)
+            continue
         try:
             f, info = solve_cone_qp(*tensors, torch.from_numpy(active), on_failure="count", return_info=True)
         except (ValueError, TypeError, IndefiniteMatrixError) as err:
             refused = "refused (non-finite)" if "non-finite" in str(err) else f"refused ({type(err).__name__})"
             counts[kind][refused] += B
             if kind not in ("nonfinite", "zero_mass") and "non-finite" in str(err):
-                crashes.append((kind, K, d, f"unexpected refusal: {err}"))
+                crashes.append((f"call {calls}", kind, K, d, f"unexpected refusal: {err}"))
             continue
         except Exception as err:  # noqa: BLE001  (counted: the goal is none)
             counts[kind]["crash"] += B
-            crashes.append((kind, K, d, f"{type(err).__name__}: {err}"))
+            crashes.append((f"call {calls}", kind, K, d, f"{type(err).__name__}: {err}"))
             continue
         if kind in ("nonfinite", "zero_mass"):
-            crashes.append((kind, K, d, "a non-finite input was not refused"))
+            crashes.append((f"call {calls}", kind, K, d, "a non-finite input was not refused"))
         status = info.status.numpy()
         for s, c in zip(*np.unique(status, return_counts=True)):
             counts[kind][Status(int(s)).name] += int(c)
@@ -208,7 +217,18 @@ def main() -> None:
         if usable.any():
             worst[kind] = max(worst[kind], float(np.nan_to_num(res[usable], nan=np.inf).max()))
         for i in np.flatnonzero(wrong | failed_not_zero)[:3]:
-            silent.append((kind, K, d, Status(int(status[i])).name, float(res[i]), bool(nan[i])))
+            silent.append(
+                (
+                    f"call {calls}",
+                    f"element {i}",
+                    kind,
+                    K,
+                    d,
+                    Status(int(status[i])).name,
+                    float(res[i]),
+                    "NaN" if nan[i] else "",
+                )
+            )
         counts[kind]["silent"] += int(wrong.sum() + failed_not_zero.sum())
         for i in np.flatnonzero(wrong | failed_not_zero):
             silent_by[(kind, Status(int(status[i])).name)] += 1

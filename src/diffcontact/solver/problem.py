@@ -32,6 +32,8 @@ ROUNDING_TOL = 1e-13  # polishing reached rounding level: converged without a pa
 POLISH_STEPS = 3  # factorisations per polishing pass
 START_MARGIN = 0.1  # how far inside the cones the first start lies: measured over 0.001 … 3, K = 1 … 19, d = 2, 3
 ROBUST_MARGIN = 1.0  # CVXOPT's, the start of the retries: slower on average, more robust
+FAR = 1e3  # a minimiser of a flat problem farther than this × its range part is solved again (``_near_least_norm``)
+TIKHONOV = 1e-12  # ... with this curvature (relative) on its flat directions
 MU_CAP = 1e4  # the last attempt: failed elements with a larger μ solved with μ capped at this (measured 1e3 … 1e5)
 # (plain ints: an IntEnum member costs a µs per access in Python 3.11)
 _CONVERGED, _INACCURATE, _MAX_ITER = int(Status.CONVERGED), int(Status.INACCURATE), int(Status.MAX_ITER)
@@ -228,10 +230,44 @@ def solve_cone_qp(
 
 
 def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure, arrays=None):
+    """``_solve_scaled``, then ``_solve_sliding`` where a contact with μ ≥ ``scaling.MU_FREE`` slides, and the failure
+    policy (``on_failure``); returns (f, result) as ``_solve_scaled``."""
+    opts = (tol, acceptable_tol, max_iter)
+    f, result, outside = _solve_scaled(A, q, mu, lower, active, d, *opts, arrays=arrays)
+    if outside is not None and outside.any():
+        f = _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result)
+    _raise_on_failure(result.status, on_failure)
+    return f, result
+
+
+def _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result):
+    """The elements of f (B, n) with contacts ``outside`` ((B, K) bool) their cone, solved again with those contacts
+    scaled for sliding (``scaling.py``); their rows of f and of result's status, iterations and residual replaced.
+    An answer is checked by its natural residual with every contact's true μ (one left free may have moved out of
+    its cone): above ``acceptable_tol`` it becomes MAX_ITER (zeros).  Returns f."""
+    rows = np.flatnonzero(outside.any(-1))
+    r = torch.from_numpy(rows)
+    part = [None if t is None else t[r] for t in (A, q, mu, lower, active)]
+    again, sub, _ = _solve_scaled(*part, d, *opts, sliding=np.ascontiguousarray(outside[rows]))
+    A64, q64, mu64, lower64, active64 = _as_arrays(*part)
+    usable = np.flatnonzero(sub.status <= _INACCURATE)
+    natural = optimality.natural_residual(
+        0.5 * (A64 + A64.swapaxes(1, 2)), q64, mu64, lower64, active64, again.detach().double().numpy(), d, usable
+    )
+    sub.status[usable[natural > opts[1]]] = _MAX_ITER  # (a failure, not a wrong answer)
+    failed = torch.from_numpy(is_failure(sub.status))[:, None]
+    again = torch.where(failed, torch.zeros_like(again), again)
+    for name in ("status", "iterations", "residual"):
+        getattr(result, name)[rows] = getattr(sub, name)
+    return f.index_copy(0, r, again.to(f.dtype))
+
+
+def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays=None, sliding=None):
     """Solve the batch (checked tensors of ``solve_cone_qp``; lower, active may be None) with the retry policy
-    below and apply the failure policy; returns (f (B, n) float64, differentiable (``ImplicitConeQP``) where an
-    input requires a gradient, and the kernel's ``IPMResult``).  arrays: ``_as_arrays`` of the tensors if made
-    already; the solver works on them, the tensors are only the ends of the autograd graph.
+    below; returns (f (B, n) float64, differentiable (``ImplicitConeQP``) where an input requires a gradient, the
+    kernel's ``IPMResult``, and (B, K) bool: the contacts scaled free whose answer leaves their cone, or None).
+    arrays: ``_as_arrays`` of the tensors if made already; the solver works on them, the tensors are only the ends
+    of the autograd graph.  sliding: (B, K) bool, contacts with μ ≥ ``scaling.MU_FREE`` scaled for sliding, or None.
 
     The data are scaled once (f = γ·S·D·z, ``scaling.py``); every attempt then runs the compiled interior-point
     method with polishing (``lanes.solve``) on some elements, in up to two passes:
@@ -247,17 +283,22 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
     benchmark need it); (3) the elements still at MAX_ITER with a finite iterate, from that start with γ set to
     the size of the stalled iterate (a badly estimated solution size, nearly singular A, can stall the method).
     Attempt 3 also takes the usable answers of elements with a friction coefficient above
-    ``optimality.MU_CHECKED`` whose natural residual in unscaled units (``optimality.py``) exceeds ``acceptable_tol``,
-    with γ set to γ·min(1, ‖z‖∞) (the scaling's factor μ makes γ overestimate the solution's size, and the scaled
-    test, relative to max(1, ‖z‖∞), then absolute): its answer replaces theirs where usable with a lower natural
-    residual, and those still above ``acceptable_tol`` become MAX_ITER (a failure, never a wrong answer).
-    Attempts 2 and 3 otherwise replace an element's result only where they end with a better (lower) status.  Failed
-    elements (``status.is_failure``) get z = 0, and raise ``ContactSolverError`` if ``on_failure`` is "raise".
+    ``optimality.MU_CHECKED`` whose natural residual in unscaled units (``optimality.py``; contacts scaled free
+    checked as free) exceeds ``acceptable_tol``, with γ set to γ·min(1, ‖z‖∞) (a guard: none at μ 10 … 1e3 since γ
+    is estimated without the factor μ); its answer replaces theirs where usable with a lower natural residual, and
+    those still above ``acceptable_tol`` become MAX_ITER (a failure, never a wrong answer); so do the answers of
+    stalled elements (every μ) above it.  Attempts 2 and 3 otherwise replace an element's result only where they end
+    with a better (lower) status.  Failed elements (``status.is_failure``) get z = 0.
     """
     A64, q64, mu64, lower64, active64 = _as_arrays(A, q, mu, lower, active) if arrays is None else arrays
     A64, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = scaling.scale_batch(
-        A64, q64, mu64, lower64, active64, contact_dims(d)
+        A64, q64, mu64, lower64, active64, contact_dims(d), sliding
     )
+    free = None  # ((B, K) bool: contacts with μ ≥ MU_FREE scaled free, checked as such: their cone comes after)
+    mu_check = mu64
+    if d > 1 and mu64.size and mu64.max() >= scaling.MU_FREE:
+        free = active64 & (mu64 >= scaling.MU_FREE) & (True if sliding is None else ~sliding)
+        mu_check = np.where(free, 1e300, mu64)
     passes = [dict(ipm_tol=tol, final_tol=tol)]
     if tol < IPM_TOL:
         passes.insert(0, dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL)))
@@ -277,7 +318,7 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
             high_mu = (mu64 > optimality.MU_CHECKED).any(-1) if check else np.zeros(len(gamma), dtype=bool)
             checked = np.flatnonzero((result.status <= _INACCURATE) & high_mu)
             natural = np.zeros(len(gamma))
-            natural[checked] = _natural(A64, q64, mu64, lower64, active64, d, gamma, T, result.z, checked)
+            natural[checked] = _natural(A64, q64, mu_check, lower64, active64, d, gamma, T, result.z, checked)
             wrong = natural > acceptable_tol  # (the answer is inaccurate in the problem's own units)
             elements = np.flatnonzero(stalled | wrong)
             gamma_try = gamma.copy()
@@ -295,7 +336,7 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
             if attempt == 2:  # (a wrong usable answer: a usable one with a lower natural residual)
                 better &= ~wrong[elements]
                 again = elements[wrong[elements] & (out.status[elements] <= _INACCURATE)]
-                now = _natural(A64, q64, mu64, lower64, active64, d, gamma_try, T, out.z, again)
+                now = _natural(A64, q64, mu_check, lower64, active64, d, gamma_try, T, out.z, again)
                 better[np.searchsorted(elements, again[now < natural[again]])] = True
                 natural[again] = np.minimum(now, natural[again])
             better = elements[better]
@@ -304,9 +345,15 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
             if attempt == 2:
                 lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
                 gamma[better] = gamma_try[better]
-                fresh = better[stalled[better] & high_mu[better]]  # (answers of stalled elements: checked too)
-                natural[fresh] = _natural(A64, q64, mu64, lower64, active64, d, gamma, T, result.z, fresh)
+                # (answers of stalled elements, every μ: their γ came from an iterate that may have run away along
+                # an unbounded ray, A = 0 with q outside the dual cone; the scaled c then falls below the kernel's
+                # tolerance, absolute where ‖z‖∞ < 1, and noise near z = 0 passes it)
+                fresh = better[stalled[better]]
+                natural[fresh] = _natural(A64, q64, mu_check, lower64, active64, d, gamma, T, result.z, fresh)
                 result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
+    outside = None
+    if free is not None and sliding is None:
+        outside = scaling.outside_cones(result.z, mu64, free, d) & (result.status <= _INACCURATE)[:, None]
     capped = None  # ((B, K) bool: contacts of answers solved with μ capped)
     if check:
         capped = np.zeros(mu64.shape, dtype=bool)
@@ -315,7 +362,6 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
     failed = is_failure(result.status)
     z = result.z
     if failed.any():
-        _raise_on_failure(result.status, on_failure)
         z = np.where(failed[:, None], 0.0, z)
     slide = np.zeros_like(sigma)
     if d > 1 and zero_mu.any():
@@ -324,13 +370,13 @@ def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_ite
         # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
         slide = speed * sigma / gamma[:, None] * zero_mu
     if not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (A, q, mu, lower))):
-        return torch.from_numpy(gamma[:, None] * T * z), result
+        return torch.from_numpy(gamma[:, None] * T * z), result, outside
     sol = ScaledSolution(A64, q64, T, S, gamma, lower_scale, slide, z, result)
     if not A.dtype.is_floating_point:
         A = A.to(torch.float64)
     if capped is not None and capped.any():  # (∂f/∂μ of the capped problem is not ours: 0 beyond the cap, as if stuck)
         mu = torch.where(torch.from_numpy(capped), mu.detach(), mu)
-    return ImplicitConeQP.apply(A, q, mu, lower, sol), result
+    return ImplicitConeQP.apply(A, q, mu, lower, sol), result, outside
 
 
 def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, result, T, S, gamma, sigma,
@@ -399,13 +445,21 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     are not unique: any minimiser (first solve), a point inside their set, that point solved for again,
     differentiably, as the unique minimiser of the problem with curvature on the flat directions centred on it,
     and the move from there to the least-norm one (whose derivative is that of the cone bounding the set).
+    Either way a first minimiser far out along an unbounded set of minimisers is brought back first
+    (``_near_least_norm``).
     """
+    # (the flat stage in float64 whatever the input: μ² of a float32 μ ≥ 2e19 overflows, NaN in its gradient)
+    mu, lower = mu.to(torch.float64), lower.to(torch.float64)
     if torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower)):
         sub = flats.idx[flats.consistent]
         with torch.no_grad():
             first, first_result = _solve_with_retries(
                 A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d, *opts
             )
+            first = _near_least_norm(
+                A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d,
+                flats.subset(flats.consistent), first, first_result.status, opts,
+            )  # fmt: skip
             spread, inner = flat.nonunique(
                 first,
                 flats.subset(flats.consistent),
@@ -424,11 +478,40 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     else:
         f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
         treated = flats.consistent
+        f = _near_least_norm(A, q, mu, lower, active, d, flats, f, result.status, opts)
     f, status = flat.minimum_norm(f, flats, mu, lower, active, d, _cone_qp(mu, lower, active, d, opts), sel=treated)
     rows = flats.idx[treated].numpy()
     result.status[rows] = np.maximum(result.status[rows], status.numpy())
     # (a failed element's zeros may have been moved along its flat directions)
     return torch.where(torch.from_numpy(is_failure(result.status))[:, None], torch.zeros_like(f), f), result
+
+
+def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts):
+    """The minimisers f (B, n) of the consistent elements of ``flats`` (a first solve of the batch (A, q, …), whose
+    statuses ``status`` (B,) are updated in place) that lie farther than ``FAR`` times the size of their range part
+    from 0, replaced by a second solve with a curvature ``TIKHONOV``·ref on the flat directions.  Returns f.
+
+    Where the set of minimisers is unbounded (a flat direction inside the cones), the first solve can end anywhere
+    on it: 2e7 times farther than the least-norm point in a stress problem, accurate relative to that size only, so
+    that the move back to the least-norm point left an error of that order (a cone violated by 4 %).  With the
+    curvature the minimiser is unique, within a relative O(``TIKHONOV``) of the least-norm one (Tikhonov's), and
+    the solver's answer is accurate at its scale; ``flat.minimum_norm`` then moves it the rest of the way.
+    """
+    rows = flats.idx[flats.consistent]
+    x = f[rows]
+    range_part = x - (flats.PiN[flats.consistent] @ x[..., None])[..., 0]
+    far = torch.zeros_like(flats.consistent)
+    far[flats.consistent] = x.abs().amax(-1) > FAR * range_part.abs().amax(-1)
+    if not far.any():
+        return f
+    rows = flats.idx[far]
+    A_t = A[rows] + (TIKHONOV * flats.ref[far])[:, None, None] * flats.PiN[far]
+    # (a failure keeps the first answer: never raised here)
+    again, result = _solve_with_retries(A_t, q[rows], mu[rows], lower[rows], active[rows], d, *opts[:3], "count")
+    ok = ~is_failure(result.status)
+    rows_ok = rows[torch.from_numpy(ok)]
+    status[rows_ok.numpy()] = np.maximum(status[rows_ok.numpy()], result.status[ok])
+    return f.index_copy(0, rows_ok, again[torch.from_numpy(ok)].to(f.dtype))
 
 
 def _cone_qp(mu, lower, active, d, opts):

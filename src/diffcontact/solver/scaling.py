@@ -4,12 +4,23 @@
 Per batch element, with contact k's rows i = k·d … k·d + d − 1:
 
     D_i = 1 on the normal row, μ_k on the tangential ones (every friction cone becomes the unit cone);
-    S_i = σ_k = A_nn,k^(−1/2) on active contacts (Jacobi scaling; the largest A_nn where A_nn is negligible), else 0;
+    S_i = σ_k = A_nn,k^(−1/2) on active contacts (Jacobi scaling; the largest A_nn where A_nn is negligible), else 0
+        (the array ``S`` returned is ∂T/∂μ, below);
     γ = the size of the solution, estimated contact by contact as max(lower, −q_n/A_nn), at least 1e-3 of the
-        scaled linear term (the scaled linear term itself when every contact separates);
+        linear term S·min(D, 1)·q (that term itself when every contact separates): in units of f, without the
+        tangential factor μ > 1, which made γ overestimate the solution's size by up to μ (and the kernel's test,
+        relative to max(1, ‖z‖∞), in effect absolute for the small z that followed: docs/scaling.md);
     P = T A T with T = S·D, plus an identity on inactive rows and on the tangential rows of μ = 0 contacts (which
         have no cone: only the ray z_n ≥ lower remains, their z_t is pinned to 0);
-    c = T q / γ;  l̂ = lower / (σ γ), lower bounds below 1e-12 of the solution's scale taken as 0.
+    contacts with μ ≥ ``MU_FREE`` have D = 1 and no cone, only the ray z_n ≥ l̂, and a free z_t ("free"): with
+        a tangential factor μ ≥ 1e4 the unit cone's z_t = f_t/(γσμ) is below the kernel's resolution next to z_n
+        for a contact that sticks (its test is relative to ‖z‖∞), and such problems ended at the iteration limit
+        or with gradients wrong by 100 %.  A free answer inside the cone (stick or separate) solves the problem
+        with the cone exactly (the cone is inactive there, its multiplier 0); one outside it (sliding) is solved
+        again with the cone and D = (1/μ, 1) on that contact (``sliding``: z_n = μ f_n/(γσ) and z_t of one size
+        where ‖f_t‖ = μ f_n), ``problem._solve_with_retries``.  S is ∂T/∂μ: σ on the tangential rows of D = μ,
+        −σ/μ² on the normal row of D = 1/μ, else 0;
+    c = T q / γ;  l̂ = lower / (T_n γ), lower bounds below 1e-12 of the solution's scale taken as 0.
 """
 
 from __future__ import annotations
@@ -21,12 +32,19 @@ from numba import njit
 
 from diffcontact.solver import lanes
 
+#: Friction coefficients from which a contact is solved free first, and again scaled for sliding where its answer
+#: leaves the cone (module docstring).  Measured: at 1e6 gradients at μ 1e4 … 1e6 were wrong by up to 3e-5 relative
+#: (2e-9 at 1e4); problems with μ < 1e4 are scaled as before.
+MU_FREE = 1e4
+_NONE_SLIDING = np.zeros((0, 0), dtype=np.bool_)  # (no contact scaled for sliding: nothing allocated)
 
-def scale_batch(A, q, mu, lower, active, dims):
-    """A: (B, n, n); q: (B, n); mu, lower: (B, K) float64; active: (B, K) bool; dims: tuple of length d.
+
+def scale_batch(A, q, mu, lower, active, dims, sliding=None):
+    """A: (B, n, n); q: (B, n); mu, lower: (B, K) float64; active: (B, K) bool; dims: tuple of length d; sliding:
+    (B, K) bool or None, contacts with μ ≥ ``MU_FREE`` to scale for sliding (their cone kept) rather than free.
 
     Returns (A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu): A_sym = ½(A + Aᵀ)
-    (B, n, n); P (B, n, n); c, T, S (B, n); gamma (B,); sigma, l_hat, lower_scale = ∂l̂/∂lower (B, K);
+    (B, n, n); P (B, n, n); c, T, S = ∂T/∂μ (B, n); gamma (B,); sigma, l_hat, lower_scale = ∂l̂/∂lower (B, K);
     on_q (cones used), on_l (rays used), zero_mu (B, K) bool.  Run on the solver's threads (``lanes.parallel``).
     """
     B, K = mu.shape
@@ -39,14 +57,16 @@ def scale_batch(A, q, mu, lower, active, dims):
         *(np.zeros((B, K), dtype=np.bool_) for _ in range(3)),
     )
     A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu = out
-    lanes.parallel(lambda start, stop: _scale_range(A, q, mu, lower, active, dims, *out, start, stop), B)
+    sliding = _NONE_SLIDING if sliding is None else sliding
+    lanes.parallel(lambda start, stop: _scale_range(A, q, mu, lower, active, sliding, dims, *out, start, stop), B)
     return A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _scale_range(
-    A, q, mu, lower, active, dims, A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu, start, stop
-):
+    A, q, mu, lower, active, sliding, dims, A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu,
+    start, stop,
+):  # fmt: skip
     """scale_batch for the batch elements start … stop − 1, into the given outputs."""
     d = len(dims)
     K = mu.shape[1]
@@ -67,26 +87,38 @@ def _scale_range(
             a_nn = As[k * d, k * d] if on else 0.0
             sg = 1.0 / math.sqrt(a_nn if a_nn > 1e-12 * a_ref else a_ref)
             sigma[b, k] = sg
+            large = on and d > 1 and mu[b, k] >= MU_FREE
+            slides = large and len(sliding) > 0 and sliding[b, k]
             for i in range(d):
-                D = 1.0 if i == 0 else mu[b, k]
-                S[b, k * d + i] = sg if on else 0.0
-                T[b, k * d + i] = S[b, k * d + i] * D
-                c_abs = max(c_abs, abs(T[b, k * d + i] * q[b, k * d + i]))
-            value = max(lower[b, k] / sg, -S[b, k * d] * q[b, k * d])
+                r = k * d + i
+                D = (1.0 / mu[b, k] if slides else 1.0) if i == 0 else (1.0 if large else mu[b, k])
+                T[b, r] = sg * D if on else 0.0
+                # ∂T/∂μ: σ on the tangential rows of a cone scaled by μ, −σ/μ² on the normal row of one scaled for
+                # sliding, else 0
+                if i == 0:
+                    S[b, r] = -sg * D / mu[b, k] if slides else 0.0
+                else:
+                    S[b, r] = sg if on and not large else 0.0
+                # (the size in units of f: a tangential factor μ > 1 would make γ overestimate it by up to μ)
+                c_abs = max(c_abs, abs(sg * min(D, 1.0) * q[b, r]) if on else 0.0)
+            value = max(lower[b, k] / sg, -sg * q[b, k * d])
             estimate = max(estimate, value if on else 0.0)
         g = max(estimate, 1e-3 * c_abs) if estimate > 0 else c_abs
         g = g if g > 0 else 1.0
         gamma[b] = g
         for k in range(K):
             on = active[b, k]
-            keep = on and lower[b, k] >= 1e-12 * sigma[b, k] * g
+            large = on and d > 1 and mu[b, k] >= MU_FREE
+            free = large and not (len(sliding) > 0 and sliding[b, k])
+            s_n = sigma[b, k] / mu[b, k] if large and not free else sigma[b, k]  # (T_n)
+            keep = on and lower[b, k] >= 1e-12 * s_n * g
             low = lower[b, k] if keep else 0.0
-            lower_scale[b, k] = 1.0 / (sigma[b, k] * g) if keep else 0.0
-            l_hat[b, k] = low / (sigma[b, k] * g) if on else 0.0
+            lower_scale[b, k] = 1.0 / (s_n * g) if keep else 0.0
+            l_hat[b, k] = low / (s_n * g) if on else 0.0
             if d > 1:
                 zero_mu[b, k] = on and mu[b, k] == 0.0
-                on_q[b, k] = on and not zero_mu[b, k]
-                on_l[b, k] = on and (low > 0 or zero_mu[b, k])
+                on_q[b, k] = on and not zero_mu[b, k] and not free
+                on_l[b, k] = on and (low > 0 or zero_mu[b, k] or free)
             else:
                 on_l[b, k] = on
         for i in range(n):
@@ -98,6 +130,14 @@ def _scale_range(
                 r = k * d + i
                 if not active[b, k] or (i > 0 and zero_mu[b, k]):
                     P[b, r, r] += 1.0
+
+
+def outside_cones(z, mu, free, d):
+    """(B, K) bool: the contacts ``free`` ((B, K) bool: μ ≥ ``MU_FREE``, scaled free) whose answer z (B, n) of the
+    scaled problem lies outside their cone, ‖f_t‖ > μ f_n (f = γσz on their rows)."""
+    B, n = z.shape
+    zk = z.reshape(B, n // d, d)
+    return free & (np.linalg.norm(zk[..., 1:], axis=-1) > mu * zk[..., 0])
 
 
 def chain_rule_batch(u, v_l, z, gf, A, q, T, S, gamma, lam_l, on_l, lower_scale, slide, dims, need):
@@ -143,7 +183,9 @@ def _chain_rule_range(
         if need[2] and d > 1:
             for k in range(K):
                 acc = slide[b, k] * u[b, k * d]
-                for r in range(k * d + 1, k * d + d):
+                for r in range(k * d, k * d + d):
+                    if S[b, r] == 0.0:  # (T_r does not depend on μ)
+                        continue
                     a_tz = 0.0  # (A T z)_r and (A T u)_r
                     a_tu = 0.0
                     for j in range(n):
