@@ -1,5 +1,5 @@
 """How much the data say about the mass ratios: the training loss of the true model with tilted masses, beside
-what a trained model still misses (docs/results.md, the Rope's masses).
+what a trained model still misses (docs/investigations.md, the Rope's masses).
 
     python benchmarks/mass_tilt.py Rope --run runs/matrix-final/Rope/CM-CD-CLNN/seed0
 

@@ -1,5 +1,5 @@
 """Why a trained run's test trajectories are outliers: which contact slots they collide on, and the training loss
-as a function of one slot's μ (docs/results.md, "BP5's and BD5's outliers").
+as a function of one slot's μ (docs/investigations.md, "BP5's and BD5's outliers").
 
     python benchmarks/slot_profile.py runs/BP5 --slot 29      # after diffcontact train BP5 and evaluate
 

@@ -4,7 +4,7 @@
 
 Loads the run's best checkpoint and its training chunks (in the run's dtype), sets the coefficient of ``slot`` to
 each value (every other parameter as learned) and prints the loss over all training chunks and its derivative
-with respect to that coefficient.  Shows where the minimum lies and how steep the way to it is (docs/results.md:
+with respect to that coefficient.  Shows where the minimum lies and how steep the way to it is (docs/investigations.md:
 why BD5's high-friction slots stopped short).
 """
 

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -131,3 +132,24 @@ def test_expected_times_come_from_the_same_models_earlier_runs(tmp_path):
     assert got["B/slow/seed0"] == pytest.approx(1000 * task_b / overall + 10.0)  # (the model's time, task-scaled)
     assert got["A/fast/seed1"] == pytest.approx(10.0)  # (an evaluation alone)
     assert "B/new/seed0" not in got  # (nothing to go by: the session's mean is used)
+
+
+def test_the_report_is_published_between_the_markers_of_the_results_page(resumed, tmp_path):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from publish_report import END, START, publish
+
+    out = resumed[0]
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "results.md").write_text(f"# Results\n\nbefore\n\n{START}\nold\n{END}\n\nafter\n")
+    text = publish(out, docs).read_text()
+    assert text.startswith("# Results\n\nbefore\n") and text.rstrip().endswith("after") and "\nold\n" not in text
+    assert "## The reproduction report" in text and "### Runs" in text and "\n## Runs" not in text
+    assert "| BD5 | CM-CD-CLNN | 0 | not measured yet (not run) |" in text  # (every task of the benchmark)
+    assert (
+        "](figures/reproduction/fig3_errors.png)" in text and (docs / "figures/reproduction/fig3_errors.png").is_file()
+    )
+    assert "](runs/" not in text  # (links to run files, not committed, shown as paths)
+    (docs / "results.md").write_text("# Results without markers\n")
+    with pytest.raises(SystemExit, match="markers"):
+        publish(out, docs)

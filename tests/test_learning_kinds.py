@@ -14,7 +14,7 @@ from diffcontact.train.module import ContactLightningModule
 # task, (μ, e) to start from (the truth: (0.2, 0.8), (0.5, 0.5), (—, 0), (0.1, 0.8)), whether e must move toward the
 # truth within the 40 steps.  The gyroscope's e first moves down from any start while the potential is fit (from
 # 0.95: 0.56 after 40 steps, 0.80 after 120; from 0.4: 0.10 after 40, 0.56 after 160, measured on these 16 chunks),
-# so only its loss and μ are checked here; its full run learns e to 0.0003 (docs/results.md).
+# so only its loss and μ are checked here; its full run learns e to 0.0003 (docs/investigations.md).
 KINDS = [("BD1", 0.7, 0.4, True), ("CP2-ground", 1.0, 0.1, True), ("Rope", 0.5, 0.4, True), ("Gyro", 0.6, 0.95, False)]
 
 

@@ -177,7 +177,7 @@ def train(
         None,
         "--mu-l1",
         help="Weight of an L1 pull of the learned μ toward 0 in the training loss (+ mu_l1·Σμ; default: the "
-        "preset's). It moves μ off the plateau where every contact of a slot sticks (docs/results.md).",
+        "preset's). It moves μ off the plateau where every contact of a slot sticks (docs/investigations.md).",
     ),
     reg: float = typer.Option(
         None, "--reg", help="CMr models: the regularisation A + reg·I of the effective mass (default 0.01)."

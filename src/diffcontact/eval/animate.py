@@ -60,7 +60,7 @@ def rollout_strip(
                 text = ax.text2D if system.d == 3 else ax.text
                 text(-0.08, 0.5, label, transform=ax.transAxes, rotation=90, ha="right", va="center", fontsize=7)
     fig.subplots_adjust(left=0.06, right=0.995, top=0.9, bottom=0.01, wspace=0.03, hspace=0.05)
-    save_figure(fig, path, dpi=70)
+    save_figure(fig, path, dpi=70, colors=64)
     plt.close(fig)
     return Path(path)
 

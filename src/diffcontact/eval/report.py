@@ -33,7 +33,9 @@ def _status(out: Path, task: str, model: str, seed: int) -> str:
         return f"failed: {record.get('error', '')}"
     if model not in (*MODEL_NAMES, *BASELINE_NAMES) and not (run / "config.json").is_file():
         return "missing (not trainable yet)"
-    return "not run"
+    if (run / "checkpoints" / "last.ckpt").is_file():
+        return "not measured yet (training interrupted; resumes from its last checkpoint)"
+    return "not measured yet (not run)"
 
 
 def _num(x: float | None, digits: int = 4) -> str:
@@ -85,6 +87,8 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
         f"Command of the last session: `{settings.get('sessions', [{}])[-1].get('command') or 'reproduce()'}`; "
         f"{len(settings.get('sessions', []))} session(s), {total:.0f} s of wall time in all. Datasets: "
         f"`{settings.get('data', 'data')}`.",
+        f"Runs evaluated: {sum(v is not None for v in metrics.values())} of {len(metrics)}; every table has a row or "
+        "cell for each run, the others marked as not measured yet.",
         "",
         "Metrics (spec F.1): relative error ‖ẑ − z‖/‖z‖ of each frame over positions and velocities; the ground truth "
         "is the exact contact model (CM) in float64 from the test trajectories' initial states, for every model. "

@@ -60,7 +60,7 @@ def plot_losses(csv_dir: Path, out: Path) -> Path | None:
     return out
 
 
-# Training settings by name.  "default": what learns on every task measured (docs/results.md, the learning
+# Training settings by name.  "default": what learns on every task measured (docs/investigations.md, the learning
 # matrix); "published": the paper's (spec E), kept for comparison.
 PRESETS = {
     "default": dict(
