@@ -24,6 +24,7 @@ forces one that the CPU supports.
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib.machinery
 import math
 import os
@@ -224,15 +225,27 @@ class IPMResult:
     def empty(cls, P: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int) -> IPMResult:
         """Outputs in their initial state for the problems (P, on, on_l): views of one buffer."""
         B, K = on.shape
-        buffer = np.zeros(B * (3 * K * d + 2 * K + 3))  # (8-byte items: the int64 outputs are views of it too)
-        views, addresses, end, base = [], [], 0, _address(buffer)
-        for shape in ((B, K * d), (B, K), (B, K), (B, K, d), (B, K, d), (B,), (B,), (B,)):
-            start, end = end, end + math.prod(shape)
-            views.append(buffer[start:end].reshape(shape))
-            addresses.append(base + 8 * start)
-        views[1][:] = views[2][:] = 1.0  # unit ray slacks and multipliers
-        views[5], views[6] = views[5].view(np.int64), views[6].view(np.int64)
-        return cls(*views, P, on, on_l, addresses)
+        size, slices, ones = _layout(B, K, d)
+        buffer = np.zeros(size)  # (8-byte items: the int64 outputs are views of it too)
+        buffer[ones] = 1.0  # unit ray slacks and multipliers
+        base = _address(buffer)
+        z, s_l, lam_l, s_q, lam_q, status, iterations, residual = (
+            buffer[a:b].reshape(shape) if len(shape) > 1 else buffer[a:b] for a, b, shape in slices
+        )
+        addresses = [base + 8 * a for a, _, _ in slices]
+        return cls(z, s_l, lam_l, s_q, lam_q, status.view(np.int64), iterations.view(np.int64), residual, P, on, on_l,
+                   addresses)  # fmt: skip
+
+
+@functools.lru_cache(maxsize=64)
+def _layout(B: int, K: int, d: int) -> tuple[int, tuple, slice]:
+    """The layout of ``IPMResult.empty``'s buffer: its size, (start, stop, shape) of each output in
+    ``IPMResult.OUTPUTS`` order, and the slice of the unit ray slacks and multipliers."""
+    slices, end = [], 0
+    for shape in ((B, K * d), (B, K), (B, K), (B, K, d), (B, K, d), (B,), (B,), (B,)):
+        start, end = end, end + math.prod(shape)
+        slices.append((start, end, shape))
+    return end, tuple(slices), slice(slices[1][0], slices[2][1])
 
 
 _NO_TRACE = np.zeros((0, 0, 4))

@@ -73,12 +73,8 @@ static V kkt_residual(const Work<D>& w, const V* h_l, const V* z, const V* s_l, 
   const int K = w.K, n = w.n;
   const V zero = splat(0.0);
   V zmax = splat(1.0), worst = zero;
-  for (int i = 0; i < n; i++) {
-    V t = w.c[i];
-    for (int j = 0; j < n; j++) t += w.P[i * n + j] * z[j];
-    r_z[i] = t;
-    zmax = vmax(zmax, vabs(z[i]));
-  }
+  matvec<false>(n, w.P, z, [&](int i) { return w.c[i]; }, [&](int i, V t) { r_z[i] = t; });
+  for (int i = 0; i < n; i++) zmax = vmax(zmax, vabs(z[i]));
   for (int k = 0; k < K; k++) {
     M ul = w.onl[k], uq = w.on[k];
     r_z[k * D] -= sel(ul, lam_l[k], zero);
@@ -106,6 +102,29 @@ static V kkt_residual(const Work<D>& w, const V* h_l, const V* z, const V* s_l, 
   }
   for (int i = 0; i < n; i++) worst = vmax(worst, vabs(r_z[i]));
   return worst / zmax;
+}
+
+// rr[j] −= Σ_{c < m} rr[c0 + c]·prow[c][j] for j = j0 … N − 1 (a row's update by m pivot rows of a panel), the
+// terms subtracted in the order of c as one column at a time; JB columns j at once (independent sums).
+static inline void update_row(V* rr, const V* const* prow, int m, int c0, int j0, int N) {
+  constexpr int JB = LANES >= 8 ? 8 : 4;
+  const V* f = rr + c0;
+  int j = j0;
+  for (; j + JB <= N; j += JB) {
+    V t[JB];
+    for (int x = 0; x < JB; x++) t[x] = rr[j + x];
+    for (int c = 0; c < m; c++) {
+      V fc = f[c];
+      const V* p = prow[c] + j;
+      for (int x = 0; x < JB; x++) t[x] -= fc * p[x];
+    }
+    for (int x = 0; x < JB; x++) rr[j + x] = t[x];
+  }
+  for (; j < N; j++) {
+    V t = rr[j];
+    for (int c = 0; c < m; c++) t -= f[c] * prow[c][j];
+    rr[j] = t;
+  }
 }
 
 // Assemble the reduced matrix at (s, λ) into e.R2 (and e.C, e.used, e.wray for the lanes of `mask`), then its LU
@@ -157,9 +176,13 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
   // fit in the L1 cache: a quarter of the traffic).  Every entry receives the same updates in the same order as
   // one column at a time, so the factors are the same to the last bit.
   constexpr int PANEL = 8;
-  V sc = zero;
-  for (i64 i = 0; i < (i64)N * N; i++) sc += R[i] * R[i];
-  sc = vsqrt(sc);
+  V sq[4] = {zero, zero, zero, zero};  // (four independent sums)
+  const i64 NN = (i64)N * N;
+  i64 i4 = 0;
+  for (; i4 + 3 < NN; i4 += 4)
+    for (int x = 0; x < 4; x++) sq[x] += R[i4 + x] * R[i4 + x];
+  for (; i4 < NN; i4++) sq[0] += R[i4] * R[i4];
+  V sc = vsqrt((sq[0] + sq[1]) + (sq[2] + sq[3]));
   M ok = (M{} == 0);
   auto row = [&](int r) { return R + (i64)r * N; };
   // pivot of column `col` among rows col … N − 1, its row swapped into place (whole rows, per lane, as selects:
@@ -207,22 +230,11 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       }
       row(c)[c] = inv;
     }
-    for (int k = c0 + 1; k < pe; k++) {  // the trailing part of the panel's rows (pivot rows of the next ones)
-      V* rk = row(k);
-      for (int j = pe; j < N; j++) {
-        V t = rk[j];
-        for (int c = c0; c < k; c++) t -= rk[c] * row(c)[j];
-        rk[j] = t;
-      }
-    }
-    for (int r = pe; r < N; r++) {  // the trailing rows, all of the panel's updates in one pass
-      V* rr = row(r);
-      for (int j = pe; j < N; j++) {
-        V t = rr[j];
-        for (int c = c0; c < pe; c++) t -= rr[c] * row(c)[j];
-        rr[j] = t;
-      }
-    }
+    const V* prow[PANEL];
+    for (int c = c0; c < pe; c++) prow[c - c0] = row(c);
+    for (int k = c0 + 1; k < pe; k++)  // the trailing part of the panel's rows (pivot rows of the next ones)
+      update_row(row(k), prow, k - c0, c0, pe, N);
+    for (int r = pe; r < N; r++) update_row(row(r), prow, pe - c0, c0, pe, N);  // the trailing rows
   }
   *e.scale2 = sc;
   return ok;
@@ -294,11 +306,11 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
     for (int k = 0; k < K; k++) y[n + k] = b[n + k];
     lu_solve(e, y, false);
     for (int i = 0; i < N; i++) x[i] = y[i];
+    matvec<false>(n, w.P, y, [&](int r) { return -b[r]; }, [&](int r, V t) { x[N + r] = t; });
     for (int k = 0; k < K; k++)
       for (int i = 0; i < D; i++) {
         int r = k * D + i;
-        V t = -b[r];
-        for (int j = 0; j < n; j++) t += w.P[(i64)r * n + j] * y[j];
+        V t = x[N + r];
         if (i == 0) t -= sel(w.onl[k], y[n + k], zero);
         x[N + r] = sel(e.used[k], t, b[N + r]);
       }
