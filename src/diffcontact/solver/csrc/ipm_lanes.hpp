@@ -129,7 +129,9 @@ struct HMatrix {
 
 // Rows i … i + R − 1 of the Cholesky factor below a panel of W columns j0 … j0 + W − 1 (cholesky, below): each
 // entry t = H_ij − Σ_k L_ik L_jk with k in order, then times the panel's reciprocal diagonal.  The W·R sums are
-// independent (in registers: W, R are compile-time constants).
+// independent (in registers: W, R are compile-time constants); within the panel, a column's entries are subtracted
+// from the later columns' sums as soon as they are known (the same terms in the same order, without a chain of
+// dependent multiply-adds per entry).
 template <int W, int R, class Hm>
 static inline void cholesky_rows(int n, int j0, int i, const Hm& h, V* L, const V* inv) {
   const V* Lc[W];
@@ -148,12 +150,17 @@ static inline void cholesky_rows(int n, int j0, int i, const Hm& h, V* L, const 
       for (int r = 0; r < R; r++) t[r][c] -= a[r] * b;
     }
   }
-  for (int c = 0; c < W; c++)
+  for (int c = 0; c < W; c++) {  // within the panel: each column's entries, then their terms in the later columns
+    V x[R];
     for (int r = 0; r < R; r++) {
-      for (int k = j0; k < j0 + c; k++) t[r][c] -= Li[r][k] * Lc[c][k];
-      V x = t[r][c] * inv[c];
-      Li[r][j0 + c] = x, L[(i64)(j0 + c) * n + i + r] = x;
+      x[r] = t[r][c] * inv[c];
+      Li[r][j0 + c] = x[r], L[(i64)(j0 + c) * n + i + r] = x[r];
     }
+    for (int c2 = c + 1; c2 < W; c2++) {
+      V b = Lc[c2][j0 + c];
+      for (int r = 0; r < R; r++) t[r][c2] -= x[r] * b;
+    }
+  }
 }
 
 // The panel of columns j0 … j0 + W − 1 of the Cholesky factor: its own rows (the sums over the columns before the
