@@ -136,7 +136,6 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
   const int K = e.K, n = e.n, N = e.N;
   const V zero = splat(0.0), one = splat(1.0);
   V* R = e.R2;
-  for (i64 i = 0; i < (i64)N * N; i++) R[i] = zero;
   for (int k = 0; k < K; k++) {
     M uq = w.on[k];
     M weak = uq & use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
@@ -153,11 +152,13 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       }
     for (int i = 0; i < D; i++) {
       V* row = R + (i64)(k * D + i) * N;
-      for (int j = 0; j < D; j++) {
-        V cij = Ck[i * D + j];
-        const V* Prow = w.P + (i64)(k * D + j) * n;
-        for (int t = 0; t < n; t++) row[t] += cij * Prow[t];
+      const V* Prow = w.P + (i64)(k * D) * n;
+      for (int t = 0; t < n; t++) {  // C_k times P's rows of contact k (in one pass)
+        V a = zero;
+        for (int j = 0; j < D; j++) a += Ck[i * D + j] * Prow[(i64)j * n + t];
+        row[t] = a;
       }
+      for (int t = n; t < N; t++) row[t] = zero;
       row[n + k] = sel(w.onl[k], -Ck[i * D], zero);  // Stat[kD, n + k] = −1 for a ray in use
       for (int j = 0; j < D; j++) {
         V l = (i == 0) ? lam[j] : (j == 0 ? lam[i] : (j == i ? lam[0] : zero));  // L(λ)[i, j]
@@ -168,6 +169,7 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
     M wr = ~ul | (use_weak & weak_ray(s_l[k], lam_l[k]));
     e.wray[k] = mask ? wr : e.wray[k];
     V* row = R + (i64)(n + k) * N;
+    for (int t = 0; t < N; t++) row[t] = zero;
     row[k * D] = sel(wr, zero, lam_l[k]);
     row[n + k] = sel(wr, one, s_l[k]);
   }
