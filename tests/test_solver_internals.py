@@ -122,14 +122,16 @@ def test_without_gradients_the_same_solution(dtype):
         assert torch.equal(without, plain)
 
 
-@pytest.mark.parametrize("d", [1, 2, 3])
-def test_flat_test_against_eigenvalues(d):
-    """``flat.flat_elements`` (Cholesky on the rows in use, A symmetrised on the fly) against the eigenvalues of the
-    symmetrised A on the rows of ``flat.rows_in_use``."""
-    gen = torch.Generator().manual_seed(50 + d)
-    B, K, tol = 40, 3, 1e-6
+@pytest.mark.parametrize("d, K", [(1, 3), (2, 3), (3, 3), (3, 11)])
+def test_flat_test_against_eigenvalues(d, K):
+    """``flat.flat_elements`` (Cholesky on the rows in use, A symmetrised on the fly; in the kernel, by panels of 8
+    columns) against the eigenvalues of the symmetrised A on the rows of ``flat.rows_in_use``, at every lane width
+    this CPU runs (B not a multiple of any)."""
+    gen = torch.Generator().manual_seed(50 + d + K)
+    B, tol = 41, 1e-6
     A, q, mu, lower = random_instance(gen, B, K, d)
-    A[: B // 2] = random_instance(gen, B // 2, K, d, rank=max(1, K * d - 3))[0]  # singular (flat on most row sets)
+    rank = max(1, K * d - 3) if K <= 3 else K * d // 3  # singular (flat on most row sets)
+    A[: B // 2] = random_instance(gen, B // 2, K, d, rank=rank)[0]
     skew = torch.randn(B, K * d, K * d, generator=gen, dtype=torch.float64)
     A = A + 0.1 * (skew - skew.mT)  # not symmetric; its symmetric part is the A above
     active = torch.rand(B, K, generator=gen) > 0.2
@@ -141,6 +143,12 @@ def test_flat_test_against_eigenvalues(d):
         if len(rows):
             sub = sym[b][np.ix_(rows, rows)]
             expected[b] = np.linalg.eigvalsh(sub)[0] <= tol * max(sub.diagonal().max(), 0.0)
-    got = flat.flat_elements(np.ascontiguousarray(A.numpy()), mu.numpy(), active.numpy(), d, tol)
     assert expected.sum() >= 5 and (~expected).sum() >= 5
-    assert (got == expected).all()
+    width = lanes.current_width()
+    try:
+        for w in lanes.supported_widths():
+            lanes.select_width(w)
+            got = flat.flat_elements(np.ascontiguousarray(A.numpy()), mu.numpy(), active.numpy(), d, tol)
+            assert (got == expected).all(), f"lane width {w}"
+    finally:
+        lanes.select_width(width)

@@ -44,14 +44,13 @@ those are decomposed.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-from numba import njit
 
 from diffcontact.errors import IndefiniteMatrixError
+from diffcontact.solver import lanes
 from diffcontact.solver.status import Status
 
 Q_TOL = 0.1  # ... up to this, drift of the constraint velocities, dropped where a flat direction enters the cones
@@ -84,68 +83,11 @@ def flat_elements(A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol
     """(B,) bool: elements whose A, on its rows in use (``rows_in_use``), has an eigenvalue ≤ tol·ref (module
     docstring).
 
-    A: (B, n, n) float64, symmetrised here (½(A + Aᵀ)); mu: (B, K) float64; active: (B, K) bool.  A Cholesky
-    factorisation of A − tol·ref·I per element (its rounding error, ~n·eps·ref, is far below tol·ref); ≈ 0.1 µs per
-    element for n = 6, in one thread (the thread pool's dispatch would cost more than the work at the batch sizes
-    of a simulation step).
+    A: (B, n, n) float64, symmetrised on the fly (½(A + Aᵀ)); mu: (B, K) float64; active: (B, K) bool.  A Cholesky
+    factorisation of A − tol·ref·I per element (its rounding error, ~n·eps·ref, is far below tol·ref), in the
+    compiled kernel (``lanes.flat_test``: the rows not in use replaced by the identity, W elements at a time).
     """
-    out = np.zeros(len(A), dtype=np.bool_)
-    _flat_range(A, mu, active, d, tol, out, 0, len(A))
-    return out
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _flat_range(A, mu, active, d, tol, out, start, stop):
-    n = A.shape[1]
-    L = np.empty((n, n))
-    rows = np.empty(n, dtype=np.int64)
-    for b in range(start, stop):
-        m = 0
-        ref = 0.0
-        for i in range(n):
-            k = i // d
-            if active[b, k] and (i % d == 0 or mu[b, k] != 0.0):  # (rows_in_use)
-                rows[m] = i
-                m += 1
-                ref = max(ref, A[b, i, i])
-        if m == 0:
-            continue
-        shift = tol * ref
-        flat = ref <= 0.0
-        for jj in range(m):
-            if flat:
-                break
-            j = rows[jj]
-            s = A[b, j, j] - shift
-            for k in range(jj):
-                s -= L[jj, k] * L[jj, k]
-            if not s > 0.0:
-                flat = True
-                break
-            s = math.sqrt(s)
-            L[jj, jj] = s
-            ii = jj + 1
-            while ii + 3 < m:  # four rows at once: four independent sums (each in the same order as alone)
-                i0, i1, i2, i3 = rows[ii], rows[ii + 1], rows[ii + 2], rows[ii + 3]
-                t0 = 0.5 * (A[b, i0, j] + A[b, j, i0])
-                t1 = 0.5 * (A[b, i1, j] + A[b, j, i1])
-                t2 = 0.5 * (A[b, i2, j] + A[b, j, i2])
-                t3 = 0.5 * (A[b, i3, j] + A[b, j, i3])
-                for k in range(jj):
-                    lk = L[jj, k]
-                    t0 -= L[ii, k] * lk
-                    t1 -= L[ii + 1, k] * lk
-                    t2 -= L[ii + 2, k] * lk
-                    t3 -= L[ii + 3, k] * lk
-                L[ii, jj], L[ii + 1, jj], L[ii + 2, jj], L[ii + 3, jj] = t0 / s, t1 / s, t2 / s, t3 / s
-                ii += 4
-            for rest in range(ii, m):
-                i = rows[rest]
-                t = 0.5 * (A[b, i, j] + A[b, j, i])
-                for k in range(jj):
-                    t -= L[rest, k] * L[jj, k]
-                L[rest, jj] = t / s
-        out[b] = flat
+    return lanes.flat_test(A, mu, active, d, tol)
 
 
 def _analyse(A, q, used, tol: float, mu=None):

@@ -14,8 +14,9 @@ positive definite even when P is singular, and one Cholesky factor serves both d
 steps on the exact optimality conditions then polish the solution to rounding accuracy (``csrc/exact_lanes.hpp``,
 equations in ``exact.py``).  The tolerances and the retries are the caller's (``problem._solve_with_retries``).
 
-Two entry points: the interior-point method followed by polishing (``solve``), and the adjoint solve of the
-backward pass (``adjoint``).  Built with the package (``setup.py``) as a plain shared library and called through
+Three entry points: the interior-point method followed by polishing (``solve``), the adjoint solve of the
+backward pass (``adjoint``) and the Cholesky test for flat directions of the input (``flat_test``, for
+``flat.flat_elements``).  Built with the package (``setup.py``) as a plain shared library and called through
 ctypes, which releases the GIL, so the batch is split among threads here.  The lane width (8 with AVX-512, 4 with
 AVX2, else 2) is chosen from the CPU on first use; the environment variable ``DIFFCONTACT_LANES`` (8, 4 or 2)
 forces one that the CPU supports.
@@ -24,6 +25,7 @@ forces one that the CPU supports.
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib.machinery
 import math
 import os
@@ -71,17 +73,29 @@ class AdjointArgs(ctypes.Structure):
     ]
 
 
+class FlatArgs(ctypes.Structure):
+    """``struct FlatArgs`` of ``csrc/api.h``."""
+
+    _fields_ = [
+        *((name, _ptr) for name in ("A", "mu", "active")),
+        ("K", _i64),
+        ("d", _i64),
+        ("tol", _f64),
+        ("flat", _ptr),
+    ]
+
+
 class _Constants(ctypes.Structure):
     """``struct Constants`` of ``csrc/api.h``: what is checked on loading."""
 
     _fields_ = [
-        *((name, _i64) for name in ("api_version", "solve_args_size", "adjoint_args_size")),
+        *((name, _i64) for name in ("api_version", "solve_args_size", "adjoint_args_size", "flat_args_size")),
         *((name, _i64) for name in ("converged", "inaccurate", "max_iter", "numerical", "unbounded", "first_failure")),
         ("weak_tol", _f64),
     ]
 
 
-API_VERSION = 2
+API_VERSION = 3
 
 
 def _load() -> ctypes.CDLL:
@@ -102,6 +116,7 @@ def _load() -> ctypes.CDLL:
         "api_version": API_VERSION,
         "solve_args_size": ctypes.sizeof(SolveArgs),
         "adjoint_args_size": ctypes.sizeof(AdjointArgs),
+        "flat_args_size": ctypes.sizeof(FlatArgs),
         **{status.name.lower(): int(status) for status in Status},
         "first_failure": int(FIRST_FAILURE),
         "weak_tol": WEAK_TOL,
@@ -116,6 +131,8 @@ def _load() -> ctypes.CDLL:
     lib.diffcontact_ipm_solve.argtypes = [ctypes.POINTER(SolveArgs), _i64, _i64]
     lib.diffcontact_adjoint_solve.restype = ctypes.c_int
     lib.diffcontact_adjoint_solve.argtypes = [ctypes.POINTER(AdjointArgs), _i64, _i64]
+    lib.diffcontact_flat_test.restype = ctypes.c_int
+    lib.diffcontact_flat_test.argtypes = [ctypes.POINTER(FlatArgs), _i64, _i64]
     return lib
 
 
@@ -198,6 +215,13 @@ def _address(a: np.ndarray) -> int:
         return a.ctypes.data
 
 
+@numba.njit(cache=True, nogil=True)
+def _addresses(a, b, c, d, e, f, g):
+    """The addresses of seven C-contiguous arrays' data (one compiled call: 3× faster than ``_address`` on each;
+    repeat an array for the slots not needed)."""
+    return a.ctypes.data, b.ctypes.data, c.ctypes.data, d.ctypes.data, e.ctypes.data, f.ctypes.data, g.ctypes.data
+
+
 @dataclass
 class IPMResult:
     """What ``solve`` returns: the solution, its status, and what the backward pass needs (float64 numpy, C-contiguous;
@@ -224,15 +248,27 @@ class IPMResult:
     def empty(cls, P: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int) -> IPMResult:
         """Outputs in their initial state for the problems (P, on, on_l): views of one buffer."""
         B, K = on.shape
-        buffer = np.zeros(B * (3 * K * d + 2 * K + 3))  # (8-byte items: the int64 outputs are views of it too)
-        views, addresses, end, base = [], [], 0, _address(buffer)
-        for shape in ((B, K * d), (B, K), (B, K), (B, K, d), (B, K, d), (B,), (B,), (B,)):
-            start, end = end, end + math.prod(shape)
-            views.append(buffer[start:end].reshape(shape))
-            addresses.append(base + 8 * start)
-        views[1][:] = views[2][:] = 1.0  # unit ray slacks and multipliers
-        views[5], views[6] = views[5].view(np.int64), views[6].view(np.int64)
-        return cls(*views, P, on, on_l, addresses)
+        size, slices, ones = _layout(B, K, d)
+        buffer = np.zeros(size)  # (8-byte items: the int64 outputs are views of it too)
+        buffer[ones] = 1.0  # unit ray slacks and multipliers
+        base = _address(buffer)
+        z, s_l, lam_l, s_q, lam_q, status, iterations, residual = (
+            buffer[a:b].reshape(shape) if len(shape) > 1 else buffer[a:b] for a, b, shape in slices
+        )
+        addresses = [base + 8 * a for a, _, _ in slices]
+        return cls(z, s_l, lam_l, s_q, lam_q, status.view(np.int64), iterations.view(np.int64), residual, P, on, on_l,
+                   addresses)  # fmt: skip
+
+
+@functools.lru_cache(maxsize=64)
+def _layout(B: int, K: int, d: int) -> tuple[int, tuple, slice]:
+    """The layout of ``IPMResult.empty``'s buffer: its size, (start, stop, shape) of each output in
+    ``IPMResult.OUTPUTS`` order, and the slice of the unit ray slacks and multipliers."""
+    slices, end = [], 0
+    for shape in ((B, K * d), (B, K), (B, K), (B, K, d), (B, K, d), (B,), (B,), (B,)):
+        start, end = end, end + math.prod(shape)
+        slices.append((start, end, shape))
+    return end, tuple(slices), slice(slices[1][0], slices[2][1])
 
 
 _NO_TRACE = np.zeros((0, 0, 4))
@@ -271,11 +307,12 @@ def solve(
         trace = _NO_TRACE
     elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
         raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
+    addresses = _addresses(P, c, lower, on, on_l, idx, trace)
     args = SolveArgs(
-        *map(_address, (P, c, lower, on, on_l)),
+        *addresses[:5],
         K,
         d,
-        _address(idx),
+        addresses[5],
         ipm_tol,
         final_tol,
         acceptable_tol,
@@ -284,7 +321,7 @@ def solve(
         refine_tol,
         polish_steps,
         *(out.addresses or [_address(getattr(out, name)) for name in IPMResult.OUTPUTS]),
-        _address(trace) if trace.size else 0,
+        addresses[6] if trace.size else 0,
         trace.shape[1],
     )
     ref = ctypes.byref(args)
@@ -301,8 +338,20 @@ def adjoint(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     u, v_l = np.empty((B, n)), np.empty((B, K))
     ok = np.empty(B, dtype=np.bool_)
     solution = res.addresses[1:5] if res.addresses else [_address(a) for a in (res.s_l, res.lam_l, res.s_q, res.lam_q)]
-    inputs = (_address(res.P), *solution, _address(res.on), _address(res.on_l))
-    args = AdjointArgs(*inputs, K, res.s_q.shape[-1], *map(_address, (g, u, v_l, ok)))
+    at = _addresses(res.P, res.on, res.on_l, g, u, v_l, ok)
+    args = AdjointArgs(at[0], *solution, *at[1:3], K, res.s_q.shape[-1], *at[3:])
     ref = ctypes.byref(args)
     parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(ref, start, stop), K), B)
     return u, v_l, ok
+
+
+def flat_test(A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float) -> np.ndarray:
+    """(B,) bool: where ½(A + Aᵀ) − tol·ref·I on the rows in use is not positive definite (``FlatArgs`` of
+    ``csrc/api.h``; ``flat.flat_elements``).  A: (B, n, n), mu: (B, K) float64; active: (B, K) bool (C-contiguous)."""
+    B, K = mu.shape
+    out = np.zeros(B, dtype=np.bool_)
+    at = _addresses(A, mu, active, out, out, out, out)
+    args = FlatArgs(*at[:3], K, d, tol, at[3])
+    ref = ctypes.byref(args)
+    parallel(lambda start, stop: _check(_lib.diffcontact_flat_test(ref, start, stop), K), B)
+    return out

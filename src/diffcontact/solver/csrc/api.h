@@ -1,5 +1,5 @@
 // The boundary between the compiled kernel and Python: the one definition of the status codes, the failure rule,
-// the weak-cone threshold and the argument structs of the two entry points.  lanes.py mirrors the structs with
+// the weak-cone threshold and the argument structs of the entry points.  lanes.py mirrors the structs with
 // ctypes under the same field names and checks, when it loads the library, that its copies of these facts agree
 // with diffcontact_constants() (the sizes of the structs included).
 //
@@ -25,7 +25,7 @@ enum { FIRST_FAILURE = MAX_ITER };
 // stick/slip or touch/separate switch): polishing and the backward pass may take it as inactive.
 #define WEAK_TOL 1e-6
 // Version of this interface: raise it with any change of the structs or the entry points.
-enum { API_VERSION = 2 };
+enum { API_VERSION = 3 };
 
 // diffcontact_ipm_solve: the interior-point method to ipm_tol, then (polish_steps > 0) polishing, of the batch
 // elements idx[start..stop) of B problems in the standard form of lanes.py (K contacts of dimension d, n = K·d;
@@ -74,9 +74,22 @@ struct AdjointArgs {
   unsigned char* ok;         // (B,) 0 where K is singular even with the weakly active cones taken as inactive
 };
 
+// diffcontact_flat_test: for the elements start … stop − 1, whether ½(A + Aᵀ) on the rows in use (active contacts,
+// without the tangential rows of μ = 0 contacts) minus tol·ref·I is not positive definite (its Cholesky factorisation
+// fails), ref its largest diagonal entry on those rows; an element with ref ≤ 0 is flat, one without rows in use not
+// (flat.py, flat_elements).
+struct FlatArgs {
+  const double* A;               // (B, n, n)
+  const double* mu;              // (B, K)
+  const unsigned char* active;   // (B, K)
+  i64 K, d;
+  double tol;
+  unsigned char* flat;           // (B,) output: 1 where flat
+};
+
 // What lanes.py checks on loading.
 struct Constants {
-  i64 api_version, solve_args_size, adjoint_args_size;
+  i64 api_version, solve_args_size, adjoint_args_size, flat_args_size;
   i64 converged, inaccurate, max_iter, numerical, unbounded, first_failure;
   double weak_tol;
 };

@@ -73,12 +73,8 @@ static V kkt_residual(const Work<D>& w, const V* h_l, const V* z, const V* s_l, 
   const int K = w.K, n = w.n;
   const V zero = splat(0.0);
   V zmax = splat(1.0), worst = zero;
-  for (int i = 0; i < n; i++) {
-    V t = w.c[i];
-    for (int j = 0; j < n; j++) t += w.P[i * n + j] * z[j];
-    r_z[i] = t;
-    zmax = vmax(zmax, vabs(z[i]));
-  }
+  matvec<false>(n, w.P, z, [&](int i) { return w.c[i]; }, [&](int i, V t) { r_z[i] = t; });
+  for (int i = 0; i < n; i++) zmax = vmax(zmax, vabs(z[i]));
   for (int k = 0; k < K; k++) {
     M ul = w.onl[k], uq = w.on[k];
     r_z[k * D] -= sel(ul, lam_l[k], zero);
@@ -108,6 +104,29 @@ static V kkt_residual(const Work<D>& w, const V* h_l, const V* z, const V* s_l, 
   return worst / zmax;
 }
 
+// rr[j] −= Σ_{c < m} rr[c0 + c]·prow[c][j] for j = j0 … N − 1 (a row's update by m pivot rows of a panel), the
+// terms subtracted in the order of c as one column at a time; JB columns j at once (independent sums).
+static inline void update_row(V* rr, const V* const* prow, int m, int c0, int j0, int N) {
+  constexpr int JB = LANES >= 8 ? 8 : 4;
+  const V* f = rr + c0;
+  int j = j0;
+  for (; j + JB <= N; j += JB) {
+    V t[JB];
+    for (int x = 0; x < JB; x++) t[x] = rr[j + x];
+    for (int c = 0; c < m; c++) {
+      V fc = f[c];
+      const V* p = prow[c] + j;
+      for (int x = 0; x < JB; x++) t[x] -= fc * p[x];
+    }
+    for (int x = 0; x < JB; x++) rr[j + x] = t[x];
+  }
+  for (; j < N; j++) {
+    V t = rr[j];
+    for (int c = 0; c < m; c++) t -= f[c] * prow[c][j];
+    rr[j] = t;
+  }
+}
+
 // Assemble the reduced matrix at (s, λ) into e.R2 (and e.C, e.used, e.wray for the lanes of `mask`), then its LU
 // factors with pivots in e.piv2.  use_weak: lanes whose weakly active cones and rays are taken as inactive.
 // Returns the lanes where it is nonsingular (pivots above 1e-13 of the Frobenius norm).
@@ -117,7 +136,6 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
   const int K = e.K, n = e.n, N = e.N;
   const V zero = splat(0.0), one = splat(1.0);
   V* R = e.R2;
-  for (i64 i = 0; i < (i64)N * N; i++) R[i] = zero;
   for (int k = 0; k < K; k++) {
     M uq = w.on[k];
     M weak = uq & use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
@@ -134,11 +152,13 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       }
     for (int i = 0; i < D; i++) {
       V* row = R + (i64)(k * D + i) * N;
-      for (int j = 0; j < D; j++) {
-        V cij = Ck[i * D + j];
-        const V* Prow = w.P + (i64)(k * D + j) * n;
-        for (int t = 0; t < n; t++) row[t] += cij * Prow[t];
+      const V* Prow = w.P + (i64)(k * D) * n;
+      for (int t = 0; t < n; t++) {  // C_k times P's rows of contact k (in one pass)
+        V a = zero;
+        for (int j = 0; j < D; j++) a += Ck[i * D + j] * Prow[(i64)j * n + t];
+        row[t] = a;
       }
+      for (int t = n; t < N; t++) row[t] = zero;
       row[n + k] = sel(w.onl[k], -Ck[i * D], zero);  // Stat[kD, n + k] = −1 for a ray in use
       for (int j = 0; j < D; j++) {
         V l = (i == 0) ? lam[j] : (j == 0 ? lam[i] : (j == i ? lam[0] : zero));  // L(λ)[i, j]
@@ -149,6 +169,7 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
     M wr = ~ul | (use_weak & weak_ray(s_l[k], lam_l[k]));
     e.wray[k] = mask ? wr : e.wray[k];
     V* row = R + (i64)(n + k) * N;
+    for (int t = 0; t < N; t++) row[t] = zero;
     row[k * D] = sel(wr, zero, lam_l[k]);
     row[n + k] = sel(wr, one, s_l[k]);
   }
@@ -157,9 +178,13 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
   // fit in the L1 cache: a quarter of the traffic).  Every entry receives the same updates in the same order as
   // one column at a time, so the factors are the same to the last bit.
   constexpr int PANEL = 8;
-  V sc = zero;
-  for (i64 i = 0; i < (i64)N * N; i++) sc += R[i] * R[i];
-  sc = vsqrt(sc);
+  V sq[4] = {zero, zero, zero, zero};  // (four independent sums)
+  const i64 NN = (i64)N * N;
+  i64 i4 = 0;
+  for (; i4 + 3 < NN; i4 += 4)
+    for (int x = 0; x < 4; x++) sq[x] += R[i4 + x] * R[i4 + x];
+  for (; i4 < NN; i4++) sq[0] += R[i4] * R[i4];
+  V sc = vsqrt((sq[0] + sq[1]) + (sq[2] + sq[3]));
   M ok = (M{} == 0);
   auto row = [&](int r) { return R + (i64)r * N; };
   // pivot of column `col` among rows col … N − 1, its row swapped into place (whole rows, per lane, as selects:
@@ -207,22 +232,11 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       }
       row(c)[c] = inv;
     }
-    for (int k = c0 + 1; k < pe; k++) {  // the trailing part of the panel's rows (pivot rows of the next ones)
-      V* rk = row(k);
-      for (int j = pe; j < N; j++) {
-        V t = rk[j];
-        for (int c = c0; c < k; c++) t -= rk[c] * row(c)[j];
-        rk[j] = t;
-      }
-    }
-    for (int r = pe; r < N; r++) {  // the trailing rows, all of the panel's updates in one pass
-      V* rr = row(r);
-      for (int j = pe; j < N; j++) {
-        V t = rr[j];
-        for (int c = c0; c < pe; c++) t -= rr[c] * row(c)[j];
-        rr[j] = t;
-      }
-    }
+    const V* prow[PANEL];
+    for (int c = c0; c < pe; c++) prow[c - c0] = row(c);
+    for (int k = c0 + 1; k < pe; k++)  // the trailing part of the panel's rows (pivot rows of the next ones)
+      update_row(row(k), prow, k - c0, c0, pe, N);
+    for (int r = pe; r < N; r++) update_row(row(r), prow, pe - c0, c0, pe, N);  // the trailing rows
   }
   *e.scale2 = sc;
   return ok;
@@ -294,11 +308,11 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
     for (int k = 0; k < K; k++) y[n + k] = b[n + k];
     lu_solve(e, y, false);
     for (int i = 0; i < N; i++) x[i] = y[i];
+    matvec<false>(n, w.P, y, [&](int r) { return -b[r]; }, [&](int r, V t) { x[N + r] = t; });
     for (int k = 0; k < K; k++)
       for (int i = 0; i < D; i++) {
         int r = k * D + i;
-        V t = -b[r];
-        for (int j = 0; j < n; j++) t += w.P[(i64)r * n + j] * y[j];
+        V t = x[N + r];
         if (i == 0) t -= sel(w.onl[k], y[n + k], zero);
         x[N + r] = sel(e.used[k], t, b[N + r]);
       }

@@ -46,7 +46,7 @@ extern "C" void free(void* ptr);
 template <int D>
 struct Work {
   int K, n;
-  V *P, *c, *H, *L;
+  V *P, *c, *Hb, *L;  // Hb: H's diagonal blocks (factor)
   V *z, *r_z, *b_z, *dz, *dz2, *A_dz, *rhs;
   V *s_l, *lam_l, *lt_l, *w2l, *r_l, *h_l, *w2t_l, *ds_l, *dl_l, *e_l, *ec_l, *rc_l, *A_dsl, *A_dll;
   V *s_q, *lam_q, *lt_q, *r_q, *u_q, *t_q, *w2t_q, *dst_q, *dlt_q, *e_q, *ec_q, *rc_q, *A_dsq, *A_dlq;
@@ -67,7 +67,7 @@ struct Work {
       p += m;
       return r;
     };
-    P = take(n * n), H = take(n * n), L = take(n * n);
+    P = take(n * n), Hb = take(n * D), L = take(n * n);
     c = take(n), z = take(n), r_z = take(n), b_z = take(n), dz = take(n), dz2 = take(n), A_dz = take(n);
     rhs = take(n), zb = take(n);
     V** kv[] = {&s_l, &lam_l, &lt_l, &w2l, &r_l, &h_l, &w2t_l, &ds_l,
@@ -83,42 +83,142 @@ struct Work {
   }
 };
 
-// Cholesky factor of H into L (layout: factor below the diagonal, its transpose above,
-// reciprocal diagonal).  Returns the lanes where H is positive definite.  By panels of PANEL columns: each row
-// below a panel is read once for all of its columns (for large K the factor does not fit in the L1 cache), each
-// entry computed by the same operations in the same order as one column at a time.
-static inline M cholesky(int n, const V* H, V* L) {
-  constexpr int PANEL = 4;
-  M ok = (M{} == 0);
-  auto store = [&](int i, int j, V t) { L[i * n + j] = t, L[j * n + i] = t; };
-  for (int j0 = 0; j0 < n; j0 += PANEL) {
-    const int w = j0 + PANEL < n ? PANEL : n - j0;
-    V inv[PANEL];
-    for (int c = 0; c < w; c++) {  // the panel's own rows, one column at a time
-      const int j = j0 + c;
-      V s = H[j * n + j];
-      for (int k = 0; k < j; k++) s -= L[j * n + k] * L[j * n + k];
-      ok &= (s > 0.0);
-      inv[c] = 1.0 / vsqrt(s > 0.0 ? s : 1.0);
-      L[j * n + j] = inv[c];
-      for (int i = j + 1; i < j0 + w; i++) {
-        V t = H[i * n + j];
-        for (int k = 0; k < j; k++) t -= L[i * n + k] * L[j * n + k];
-        store(i, j, t * inv[c]);
+// Σ_j P[i][j]·x[j] (n × n, row-major) added to (SUB: subtracted from) init(i), passed to out(i, value) for every
+// row i; four rows at a time (four independent sums: a single one waits on the latency of each multiply-add), each
+// summed in the order of j as alone.
+template <bool SUB, class Init, class Out>
+static inline void matvec(int n, const V* P, const V* x, Init init, Out out) {
+  int i = 0;
+  for (; i + 3 < n; i += 4) {
+    const V *p0 = P + (i64)i * n, *p1 = p0 + n, *p2 = p1 + n, *p3 = p2 + n;
+    V t0 = init(i), t1 = init(i + 1), t2 = init(i + 2), t3 = init(i + 3);
+    for (int j = 0; j < n; j++) {
+      V xj = x[j];
+      if (SUB) {
+        t0 -= p0[j] * xj, t1 -= p1[j] * xj, t2 -= p2[j] * xj, t3 -= p3[j] * xj;
+      } else {
+        t0 += p0[j] * xj, t1 += p1[j] * xj, t2 += p2[j] * xj, t3 += p3[j] * xj;
       }
     }
-    for (int i = j0 + w; i < n; i++) {  // the rows below it: the columns before the panel, then within it
-      const V* Li = L + i * n;
-      V t[PANEL];
-      for (int c = 0; c < w; c++) t[c] = H[i * n + j0 + c];
-      for (int k = 0; k < j0; k++) {
-        V a = Li[k];
-        for (int c = 0; c < w; c++) t[c] -= a * L[(j0 + c) * n + k];
-      }
-      for (int c = 0; c < w; c++) {
-        for (int k = j0; k < j0 + c; k++) t[c] -= Li[k] * L[(j0 + c) * n + k];
-        store(i, j0 + c, t[c] * inv[c]);
-      }
+    out(i, t0), out(i + 1, t1), out(i + 2, t2), out(i + 3, t3);
+  }
+  for (; i < n; i++) {
+    const V* p0 = P + (i64)i * n;
+    V t = init(i);
+    for (int j = 0; j < n; j++) {
+      if (SUB)
+        t -= p0[j] * x[j];
+      else
+        t += p0[j] * x[j];
+    }
+    out(i, t);
+  }
+}
+
+// H = P + GᵀW⁻²G read entry by entry: P off the contacts' diagonal blocks, Hb (K × D × D) on them (no copy of P).
+template <int D>
+struct HMatrix {
+  const V* P;
+  const V* Hb;
+  int n;
+  V operator()(int i, int j) const {
+    const int k = i / D;
+    return k == j / D ? Hb[(k * D + i % D) * D + j % D] : P[(i64)i * n + j];
+  }
+};
+
+// Rows i … i + R − 1 of the Cholesky factor below a panel of W columns j0 … j0 + W − 1 (cholesky, below): each
+// entry t = H_ij − Σ_k L_ik L_jk with k in order, then times the panel's reciprocal diagonal.  The W·R sums are
+// independent (in registers: W, R are compile-time constants); within the panel, a column's entries are subtracted
+// from the later columns' sums as soon as they are known (the same terms in the same order, without a chain of
+// dependent multiply-adds per entry).
+template <int W, int R, class Hm>
+static inline void cholesky_rows(int n, int j0, int i, const Hm& h, V* L, const V* inv) {
+  const V* Lc[W];
+  for (int c = 0; c < W; c++) Lc[c] = L + (i64)(j0 + c) * n;
+  V* Li[R];
+  V t[R][W];
+  for (int r = 0; r < R; r++) {
+    Li[r] = L + (i64)(i + r) * n;
+    for (int c = 0; c < W; c++) t[r][c] = h(i + r, j0 + c);
+  }
+  for (int k = 0; k < j0; k++) {
+    V a[R];
+    for (int r = 0; r < R; r++) a[r] = Li[r][k];
+    for (int c = 0; c < W; c++) {
+      V b = Lc[c][k];
+      for (int r = 0; r < R; r++) t[r][c] -= a[r] * b;
+    }
+  }
+  for (int c = 0; c < W; c++) {  // within the panel: each column's entries, then their terms in the later columns
+    V x[R];
+    for (int r = 0; r < R; r++) {
+      x[r] = t[r][c] * inv[c];
+      Li[r][j0 + c] = x[r], L[(i64)(j0 + c) * n + i + r] = x[r];
+    }
+    for (int c2 = c + 1; c2 < W; c2++) {
+      V b = Lc[c2][j0 + c];
+      for (int r = 0; r < R; r++) t[r][c2] -= x[r] * b;
+    }
+  }
+}
+
+// The panel of columns j0 … j0 + W − 1 of the Cholesky factor: its own rows (the sums over the columns before the
+// panel for all W columns of a row at once, those right of the diagonal dropped; then column by column within the
+// panel), then the rows below it, ROWS at a time (two with 32 vector registers, else one).
+template <int W, class Hm>
+static inline void cholesky_panel(int n, int j0, const Hm& h, V* L, M& ok) {
+  constexpr int ROWS = LANES >= 8 ? 2 : 1;
+  V pt[W][W], inv[W];
+  for (int r = 0; r < W; r++) {
+    const V* Lr = L + (i64)(j0 + r) * n;
+    V t[W];
+    for (int c = 0; c < W; c++) t[c] = h(j0 + r, j0 + c);
+    for (int k = 0; k < j0; k++) {
+      V a = Lr[k];
+      for (int c = 0; c < W; c++) t[c] -= a * L[(i64)(j0 + c) * n + k];
+    }
+    for (int c = 0; c < W; c++) pt[r][c] = t[c];
+  }
+  for (int c = 0; c < W; c++) {
+    const int j = j0 + c;
+    V* Lj = L + (i64)j * n;
+    V s = pt[c][c];
+    for (int k = j0; k < j; k++) s -= Lj[k] * Lj[k];
+    ok &= (s > 0.0);
+    inv[c] = 1.0 / vsqrt(s > 0.0 ? s : 1.0);
+    Lj[j] = inv[c];
+    for (int r = c + 1; r < W; r++) {
+      V* Li = L + (i64)(j0 + r) * n;
+      V t = pt[r][c];
+      for (int k = j0; k < j; k++) t -= Li[k] * Lj[k];
+      V x = t * inv[c];
+      Li[j] = x, Lj[j0 + r] = x;
+    }
+  }
+  int i = j0 + W;
+  for (; i + ROWS <= n; i += ROWS) cholesky_rows<W, ROWS>(n, j0, i, h, L, inv);
+  for (; i < n; i++) cholesky_rows<W, 1>(n, j0, i, h, L, inv);
+}
+
+// Cholesky factor of H (n × n, read through h(i, j), lower triangle) into L (layout: factor below the diagonal, its
+// transpose above, reciprocal diagonal).  Returns the lanes where H is positive definite.  By panels of 8 columns:
+// each row below a panel is read once for all of its columns (for large K the factor does not fit in the L1 cache),
+// with independent sums in registers; every entry is computed by the same operations in the same order as one
+// column at a time (t = H_ij − Σ_k L_ik L_jk, k in order).
+template <class Hm>
+static inline M cholesky(int n, const Hm& h, V* L) {
+  M ok = (M{} == 0);
+  for (int j0 = 0; j0 < n; j0 += 8) {
+    switch (n - j0 >= 8 ? 8 : n - j0) {
+      case 8: cholesky_panel<8>(n, j0, h, L, ok); break;
+      case 7: cholesky_panel<7>(n, j0, h, L, ok); break;
+      case 6: cholesky_panel<6>(n, j0, h, L, ok); break;
+      case 5: cholesky_panel<5>(n, j0, h, L, ok); break;
+      case 4: cholesky_panel<4>(n, j0, h, L, ok); break;
+      case 3: cholesky_panel<3>(n, j0, h, L, ok); break;
+      case 2: cholesky_panel<2>(n, j0, h, L, ok); break;
+      default: cholesky_panel<1>(n, j0, h, L, ok); break;
     }
   }
   return ok;
@@ -142,19 +242,21 @@ static inline void chol_solve(int n, const V* L, const V* b, V* x) {
 template <int D>
 static M factor(Work<D>& w, const V* w2l, const V* w2q, M run) {
   const int n = w.n, K = w.K;
-  for (int i = 0; i < n * n; i++) w.H[i] = w.P[i];
-  for (int k = 0; k < K; k++) {
-    w.H[(k * D) * n + k * D] += sel(w.onl[k], w2l[k], 0.0);
-    if (D > 1)
-      for (int i = 0; i < D; i++)
-        for (int j = 0; j < D; j++) w.H[(k * D + i) * n + k * D + j] += sel(w.on[k], w2q[(k * D + i) * D + j], 0.0);
-  }
-  M ok = cholesky(n, w.H, w.L);
+  for (int k = 0; k < K; k++)  // H's diagonal blocks (the rest of H is P)
+    for (int i = 0; i < D; i++)
+      for (int j = 0; j < D; j++) {
+        V t = w.P[(i64)(k * D + i) * n + k * D + j];
+        if (i == 0 && j == 0) t += sel(w.onl[k], w2l[k], 0.0);
+        if (D > 1) t += sel(w.on[k], w2q[(k * D + i) * D + j], 0.0);
+        w.Hb[(k * D + i) * D + j] = t;
+      }
+  const HMatrix<D> h{w.P, w.Hb, n};
+  M ok = cholesky(n, h, w.L);
   if (!any(run & ~ok)) return ok;
   V m = splat(1.0);
-  for (int i = 0; i < n; i++) m = vmax(m, vabs(w.H[i * n + i]));
-  for (int i = 0; i < n; i++) w.H[i * n + i] += sel(ok, splat(0.0), 1e-13 * m);
-  return cholesky(n, w.H, w.L);
+  for (int i = 0; i < n; i++) m = vmax(m, vabs(h(i, i)));
+  for (int i = 0; i < n; i++) w.Hb[i * D + i % D] += sel(ok, splat(0.0), 1e-13 * m);
+  return cholesky(n, h, w.L);
 }
 
 // Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.
@@ -373,12 +475,8 @@ STAGE V residuals(Work<D>& w, Loop& s, V& pres, V& dres) {
   const bool soc = D > 1;
   const V zero = splat(0.0);
   V zmax = splat(1.0);
-  for (int i = 0; i < n; i++) {
-    V t = w.c[i];
-    for (int j = 0; j < n; j++) t += w.P[i * n + j] * w.z[j];
-    w.r_z[i] = t;
-    zmax = vmax(zmax, vabs(w.z[i]));
-  }
+  matvec<false>(n, w.P, w.z, [&](int i) { return w.c[i]; }, [&](int i, V t) { w.r_z[i] = t; });
+  for (int i = 0; i < n; i++) zmax = vmax(zmax, vabs(w.z[i]));
   V gap = zero;
   pres = zero;
   for (int k = 0; k < K; k++) {
@@ -459,11 +557,7 @@ template <int D>
 STAGE void refine_direction(Work<D>& w, M refine) {
   const int K = w.K, n = w.n;
   const V zero = splat(0.0);
-  for (int i = 0; i < n; i++) {
-    V t = -w.r_z[i];
-    for (int j = 0; j < n; j++) t -= w.P[i * n + j] * w.dz[j];
-    w.b_z[i] = t;
-  }
+  matvec<true>(n, w.P, w.dz, [&](int i) { return -w.r_z[i]; }, [&](int i, V t) { w.b_z[i] = t; });
   for (int k = 0; k < K; k++) {
     w.b_z[k * D] += sel(w.onl[k], w.dl_l[k], zero);
     w.e_l[k] = sel(w.onl[k], -w.r_l[k] + w.dz[k * D] - w.ds_l[k], zero);

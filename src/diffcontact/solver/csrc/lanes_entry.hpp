@@ -1,5 +1,6 @@
-// The entry points of one instruction set (namespace NS): the interior-point method with polishing, and the
-// adjoint solve, over batch elements taken W at a time (the last group padded with copies of its last element).
+// The entry points of one instruction set (namespace NS): the interior-point method with polishing, the adjoint
+// solve and the test for flat directions, over batch elements taken W at a time (the last group padded with copies
+// of its last element).
 #include "api.h"
 #include "ipm_lanes.hpp"
 #include "exact_lanes.hpp"
@@ -115,6 +116,45 @@ static int adjoint_range(const AdjointArgs& a, i64 start, i64 stop) {
   });
 }
 
+// A plain dense matrix (row-major, n × n, lower triangle) for cholesky.
+struct Dense {
+  const V* H;
+  int n;
+  V operator()(int i, int j) const { return H[(i64)i * n + j]; }
+};
+
+template <int D>
+static int flat_range(const FlatArgs& a, i64 start, i64 stop) {
+  const int K = (int)a.K;
+  const int n = K * D;
+  return for_groups<D>(K, nullptr, start, stop, [&](Work<D>& w, Exact<D>&, const i64* b, int valid) {
+    for (int k = 0; k < K; k++)  // contacts active (onl) and with friction (on)
+      for (int l = 0; l < LANES; l++) {
+        w.onl[k][l] = a.active[b[l] * K + k] ? -1 : 0;
+        w.on[k][l] = a.mu[b[l] * K + k] != 0.0 ? -1 : 0;
+      }
+    for (i64 i = 0; i < (i64)n * n; i++)
+      for (int l = 0; l < LANES; l++) w.P[i][l] = a.A[b[l] * n * n + i];
+    M* used = (M*)w.rhs;  // (n vectors of scratch)
+    for (int i = 0; i < n; i++) used[i] = i % D == 0 ? w.onl[i / D] : w.onl[i / D] & w.on[i / D];
+    V ref = splat(0.0);
+    M any_used = M{} != 0;
+    for (int i = 0; i < n; i++) {
+      ref = sel(used[i], vmax(ref, w.P[(i64)i * n + i]), ref);
+      any_used |= used[i];
+    }
+    const V shift = a.tol * ref;
+    for (int i = 0; i < n; i++) {  // ½(A + Aᵀ) − shift·I on the rows in use, the identity elsewhere (lower triangle)
+      V* Pi = w.P + (i64)i * n;
+      for (int j = 0; j < i; j++) Pi[j] = sel(used[i] & used[j], 0.5 * (Pi[j] + w.P[(i64)j * n + i]), 0.0);
+      Pi[i] = sel(used[i], Pi[i] - shift, 1.0);
+    }
+    M ok = cholesky(n, Dense{w.P, n}, w.L);
+    M flat = any_used & (~ok | (ref <= 0.0));
+    for (int l = 0; l < valid; l++) a.flat[b[l]] = flat[l] ? 1 : 0;
+  });
+}
+
 // f(Dim<d>{}) for the contact dimension d (1, 2 or 3: the compiled ones); −2 for any other.
 template <int D>
 struct Dim {
@@ -136,6 +176,10 @@ int solve(const SolveArgs& a, i64 start, i64 stop) {
 
 int adjoint(const AdjointArgs& a, i64 start, i64 stop) {
   return by_dim(a.d, [&](auto dim) { return adjoint_range<decltype(dim)::value>(a, start, stop); });
+}
+
+int flat(const FlatArgs& a, i64 start, i64 stop) {
+  return by_dim(a.d, [&](auto dim) { return flat_range<decltype(dim)::value>(a, start, stop); });
 }
 
 }  // namespace NS

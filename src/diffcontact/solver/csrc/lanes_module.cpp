@@ -8,6 +8,7 @@
   int lanes();                                              \
   int solve(const SolveArgs& a, i64 start, i64 stop);       \
   int adjoint(const AdjointArgs& a, i64 start, i64 stop);   \
+  int flat(const FlatArgs& a, i64 start, i64 stop);         \
   }
 DECLARE(isa_base)
 #if defined(__x86_64__)
@@ -17,10 +18,11 @@ DECLARE(isa_avx512)
 
 static int (*solve_fn)(const SolveArgs&, i64, i64) = isa_base::solve;
 static int (*adjoint_fn)(const AdjointArgs&, i64, i64) = isa_base::adjoint;
+static int (*flat_fn)(const FlatArgs&, i64, i64) = isa_base::flat;
 static int width = 2;
 
 static const Constants constants = {
-    API_VERSION, sizeof(SolveArgs), sizeof(AdjointArgs),          CONVERGED, INACCURATE, MAX_ITER, NUMERICAL,
+    API_VERSION, sizeof(SolveArgs), sizeof(AdjointArgs), sizeof(FlatArgs),          CONVERGED, INACCURATE, MAX_ITER, NUMERICAL,
     UNBOUNDED,   FIRST_FAILURE,     WEAK_TOL,
 };
 
@@ -45,10 +47,10 @@ int diffcontact_ipm_supported() {
 int diffcontact_ipm_select(int w) {
   if (!(diffcontact_ipm_supported() & w)) return 0;
 #if defined(__x86_64__)
-  if (w == 8) solve_fn = isa_avx512::solve, adjoint_fn = isa_avx512::adjoint;
-  if (w == 4) solve_fn = isa_avx2::solve, adjoint_fn = isa_avx2::adjoint;
+  if (w == 8) solve_fn = isa_avx512::solve, adjoint_fn = isa_avx512::adjoint, flat_fn = isa_avx512::flat;
+  if (w == 4) solve_fn = isa_avx2::solve, adjoint_fn = isa_avx2::adjoint, flat_fn = isa_avx2::flat;
 #endif
-  if (w == 2) solve_fn = isa_base::solve, adjoint_fn = isa_base::adjoint;
+  if (w == 2) solve_fn = isa_base::solve, adjoint_fn = isa_base::adjoint, flat_fn = isa_base::flat;
   width = w;
   return w;
 }
@@ -59,4 +61,5 @@ int diffcontact_ipm_width() { return width; }
 // memory, −2 for a contact dimension other than 1, 2, 3.
 int diffcontact_ipm_solve(const SolveArgs* a, i64 start, i64 stop) { return solve_fn(*a, start, stop); }
 int diffcontact_adjoint_solve(const AdjointArgs* a, i64 start, i64 stop) { return adjoint_fn(*a, start, stop); }
+int diffcontact_flat_test(const FlatArgs* a, i64 start, i64 stop) { return flat_fn(*a, start, stop); }
 }
