@@ -99,6 +99,10 @@ def test_task_file_training_table_adjusts_the_default_preset_only(tmp_path):
         task_training(_task_file(tmp_path, "momentum = 0.9\n"))
     with pytest.raises(ConfigError, match=r"training.mu_coef_lr = -1 is not positive"):
         task_training(_task_file(tmp_path, "mu_coef_lr = -1.0\n"))
+    assert task_training(_task_file(tmp_path, "mu_l1 = 0.0\n")) == {"mu_l1": 0.0}  # (no pull: allowed)
+    with pytest.raises(ConfigError, match=r"training.mu_l1 = -1"):
+        task_training(_task_file(tmp_path, "mu_l1 = -1.0\n"))
+    assert task_training("BD5") == {"mu_coef_lr": 1.0, "mu_l1": 1e-5}
 
 
 def test_mu_learns_at_its_own_rate_where_given():
@@ -209,3 +213,14 @@ def test_summarize_recomputes_learned_json_and_keeps_the_counters(data_root, tmp
         summarize_run(moved)
     with pytest.raises(ConfigError, match="not a finished training run"):
         summarize_run(tmp_path / "nothing")
+
+
+def test_the_mu_pull_is_checked_and_recorded():
+    from diffcontact.train.run import _check_numbers
+
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match=r"mu_l1 = .* is not a finite number >= 0"):
+            _check_numbers(resolve_preset("default", mu_l1=bad))
+    _check_numbers(resolve_preset("default", mu_l1=0.0))
+    assert resolve_preset("default", task_training("BD5"))["mu_l1"] == 1e-5
+    assert resolve_preset("default")["mu_l1"] == resolve_preset("published")["mu_l1"] == 0.0

@@ -103,8 +103,8 @@ def task_training(task: str | Path) -> dict:
             settings[key] = table.get(key)
         elif key in ("epochs", "batch_size"):
             settings[key] = table.integer(key, lo=1)
-        else:
-            settings[key] = table.number(key, lo=0.0, lo_open=True)
+        else:  # (rates > 0; a pull may be 0)
+            settings[key] = table.number(key, lo=0.0, lo_open=key != "mu_l1")
     return settings
 
 
