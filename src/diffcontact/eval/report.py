@@ -16,7 +16,7 @@ import torch
 import diffcontact
 from diffcontact.data.store import write_text
 from diffcontact.eval import published
-from diffcontact.eval.reproduce import evaluated, run_dir
+from diffcontact.eval.reproduce import evaluated, run_dir, run_times
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 
 HOMOGENEOUS = ("BP5-e", "CP3-e", "CP3", "Rope", "Gyro-e", "Gyro")
@@ -44,18 +44,6 @@ def _num(x: float | None, digits: int = 4) -> str:
 
 def _err(mean: float, half: float | None) -> str:
     return f"{mean:.3g}" + ("" if half is None else f" ± {half:.2g}")
-
-
-def _times(run: Path) -> tuple[float | None, float | None]:
-    """Training wall time (learned.json, over all the sessions of a resumed run) and the evaluation's
-    (eval/metrics.json) of a run, in s (None: unknown, e.g. an evaluation written before its time was recorded)."""
-    times = []
-    for file, key in (("learned.json", "wall_time_s"), ("eval/metrics.json", "seconds")):
-        try:
-            times.append(float(json.loads((run / file).read_text())[key]))
-        except (OSError, ValueError, KeyError, TypeError):
-            times.append(None)
-    return times[0], times[1]
 
 
 def _pct(x: float) -> str:
@@ -192,7 +180,7 @@ def _runs_table(out, tasks, models, seeds, metrics) -> list[str]:
         for m in models:
             for s in seeds:
                 v = metrics[t, m, s]
-                train, ev = _times(run_dir(out, t, m, s))
+                train, ev = run_times(run_dir(out, t, m, s))
                 status = "done" if v else _status(out, t, m, s)
                 err = _err(v["trajectory_error"]["mean"], v["trajectory_error"]["ci95"]) if v else "—"
                 lines.append(f"| {t} | {m} | {s} | {status} | {_num(train, 0)} | {_num(ev, 0)} | {err} |")

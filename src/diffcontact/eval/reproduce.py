@@ -183,23 +183,32 @@ class Progress:
         )
 
 
+def run_times(run: Path) -> tuple[float | None, float | None]:
+    """Training wall time (learned.json, over all the sessions of a resumed run) and the evaluation's
+    (eval/metrics.json) of a run, in s (None: unknown, e.g. an evaluation written before its time was recorded)."""
+    times = []
+    for file, key in (("learned.json", "wall_time_s"), ("eval/metrics.json", "seconds")):
+        try:
+            times.append(float(json.loads((run / file).read_text())[key]))
+        except (OSError, ValueError, KeyError, TypeError):
+            times.append(None)
+    return times[0], times[1]
+
+
 def expected_seconds(out: Path, cells: list[Cell]) -> dict[str, float]:
     """The expected seconds of each cell to do, from the finished runs in OUT/runs: a training, the mean training
     time (learned.json, all sessions) of the same model's runs scaled by the task's (the mean over its finished
     runs relative to all runs' mean), plus an evaluation's mean time (eval/metrics.json); an evaluation alone, the
     latter.  Cells with nothing to go by are left out."""
-    trained, evaluated = [], []
+    trained, evaluations = [], []
     for learned in out.glob("runs/*/*/seed*/learned.json"):
-        task, model = learned.parts[-4], learned.parts[-3]
-        try:
-            trained.append((task, model, float(json.loads(learned.read_text())["wall_time_s"])))
-        except (OSError, ValueError, KeyError, TypeError):
+        train, evaluation = run_times(learned.parent)
+        if train is None:
             continue
-        try:
-            evaluated.append(float(json.loads((learned.parent / "eval" / "metrics.json").read_text())["seconds"]))
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
-    evaluation = sum(evaluated) / len(evaluated) if evaluated else None
+        trained.append((learned.parts[-4], learned.parts[-3], train))
+        if evaluation is not None:
+            evaluations.append(evaluation)
+    evaluation = sum(evaluations) / len(evaluations) if evaluations else None
     if not trained:
         return {}
     overall = sum(t for *_, t in trained) / len(trained)
