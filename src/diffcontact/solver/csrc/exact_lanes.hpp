@@ -6,8 +6,15 @@
 // give dλ_q = Stat·x − b_stat, and its complementarity rows E dz_k + C dλ_q = b_cone become
 // (E + C·Stat) x = b_cone + C b_stat, with C = L(s), E = L(λ) (arrow matrices), or C = I, E = 0 for a weakly
 // active cone taken as inactive.  A contact without a cone keeps its stationarity rows (C = I, E = 0 as well, with
-// its dλ_q = b_cone decoupled); a ray not in use is an identity row.  The reduced matrix, the same size in every
-// lane, is factorised by LU with partial pivoting (pivots chosen per lane).  Included by lanes_entry.hpp after
+// its dλ_q = b_cone decoupled); a ray not in use is an identity row.
+//
+// The K rays' unknowns are eliminated before the LU: ray k's row has two entries, a = λ_l at dz_kD and b = s_l at
+// dλ_l,k (0 and 1 for an identity row), and dλ_l,k appears elsewhere only in contact k's D rows (Bc: −C_k[i, 0]).
+// Per lane the larger of |a|, |b| is the pivot: with b, dλ_l,k = (g − a dz_kD)/b is substituted (column kD of the
+// n × n block A becomes A_kD − Bc·a/b); with a, dz_kD and dλ_l,k trade places (dz_kD = (g − b dλ_l,k)/a, column kD
+// becomes Bc − A_kD·b/a).  Either is a change of one column: the Schur complement S (n × n, the same size in every
+// lane) is factorised by LU with partial pivoting (pivots chosen per lane), and the eliminated unknowns follow from
+// the ray rows; A's original columns kD are kept for the right-hand sides.  Included by lanes_entry.hpp after
 // ipm_lanes.hpp (same namespace and types).
 
 namespace NS {
@@ -16,8 +23,8 @@ namespace NS {
 template <int D>
 struct Exact {
   int K, n, N;       // N = n + K
-  V *R, *R2;         // N × N: current factors and a new factorisation
-  M *piv, *piv2;     // N: pivot row of each step, per lane
+  V *R, *R2;         // current factors and a new factorisation: Factors<D> layout (F vectors)
+  M *piv, *piv2;     // n: pivot row of each step, per lane
   V *C;              // K × D × D: coefficient of dλ_q in the cone rows
   M *used, *wray;    // K: cone eliminated (in use); ray taken as identity (weak)
   V *scale, *scale2; // 1: Frobenius norm (singularity test)
@@ -27,9 +34,13 @@ struct Exact {
   V *zt, *slt, *llt, *sqt, *lqt;         // trial point
   V *h_l;
 
+  static i64 F(int K) {  // S (n × n), A's columns kD (K × n), per ray: c, 1/d, swapped (see Factors)
+    i64 n = (i64)K * D;
+    return n * n + (i64)K * n + 3 * K;
+  }
   static i64 size(int K) {
     i64 n = (i64)K * D, N = n + K;
-    return 2 * N * N + 2 * N + (i64)K * D * D + 2 * K + 2 + 3 * (N + n) + 3 * n + 2 * K + 3 * n + 2 * K + 3 * n +
+    return 2 * F(K) + 2 * n + (i64)K * D * D + 2 * K + 2 + 3 * (N + n) + 3 * n + 2 * K + 3 * n + 2 * K + 3 * n +
            2 * K + K;
   }
   void carve(V* buf, int K_) {
@@ -42,9 +53,9 @@ struct Exact {
       p += m;
       return r;
     };
-    R = take((i64)N * N), R2 = take((i64)N * N);
-    piv = (M*)take(N), piv2 = (M*)take(N);
-    for (int i = 0; i < N; i++) piv[i] = piv2[i] = M{} + i;  // (lanes never factorised still solve in bounds)
+    R = take(F(K)), R2 = take(F(K));
+    piv = (M*)take(n), piv2 = (M*)take(n);
+    for (int i = 0; i < n; i++) piv[i] = piv2[i] = M{} + i;  // (lanes never factorised still solve in bounds)
     C = take((i64)K * D * D);
     used = (M*)take(K), wray = (M*)take(K);
     scale = take(1), scale2 = take(1);
@@ -53,6 +64,19 @@ struct Exact {
     t_z = take(n), t_q = take(n), tc_q = take(n), t_l = take(K), tc_l = take(K);
     zt = take(n), sqt = take(n), lqt = take(n), slt = take(K), llt = take(K);
     h_l = take(K);
+  }
+};
+
+// The parts of a factorisation record (Exact::R, R2): the LU factors of S (n × n, row-major), A's original column
+// kD of each ray k (K × n), and per ray the other entry c of its row, 1/d of its pivot d and whether dz_kD and
+// dλ_l,k traded places.
+template <int D>
+struct Factors {
+  V *S, *colA, *c, *dinv;
+  M* swp;
+  Factors(V* R, int K) {
+    const i64 n = (i64)K * D;
+    S = R, colA = R + n * n, c = colA + K * n, dinv = c + K, swp = (M*)(dinv + K);
   }
 };
 
@@ -127,15 +151,18 @@ static inline void update_row(V* rr, const V* const* prow, int m, int c0, int j0
   }
 }
 
-// Assemble the reduced matrix at (s, λ) into e.R2 (and e.C, e.used, e.wray for the lanes of `mask`), then its LU
-// factors with pivots in e.piv2.  use_weak: lanes whose weakly active cones and rays are taken as inactive.
-// Returns the lanes where it is nonsingular (pivots above 1e-13 of the Frobenius norm).
+// Assemble the reduced matrix at (s, λ), eliminate the rays into S (e.R2; e.C, e.used, e.wray for the lanes of
+// `mask`), then the LU factors of S with pivots in e.piv2.  use_weak: lanes whose weakly active cones and rays are
+// taken as inactive.  Returns the lanes where it is nonsingular (the rays' pivots and S's above 1e-13 of the
+// Frobenius norm of the reduced matrix).
 template <int D>
 static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, const V* s_q, const V* lam_q,
                 M use_weak, M mask) {
-  const int K = e.K, n = e.n, N = e.N;
+  const int K = e.K, n = e.n;
   const V zero = splat(0.0), one = splat(1.0);
-  V* R = e.R2;
+  Factors<D> f(e.R2, K);
+  V* R = f.S;
+  V sq_rays = zero, dmin = splat(__builtin_inf());
   for (int k = 0; k < K; k++) {
     M uq = w.on[k];
     M weak = uq & use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
@@ -151,41 +178,60 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
         e.C[(k * D + i) * D + j] = sel(mask, Ck[i * D + j], e.C[(k * D + i) * D + j]);
       }
     for (int i = 0; i < D; i++) {
-      V* row = R + (i64)(k * D + i) * N;
+      V* row = R + (i64)(k * D + i) * n;
       const V* Prow = w.P + (i64)(k * D) * n;
       for (int t = 0; t < n; t++) {  // C_k times P's rows of contact k (in one pass)
         V a = zero;
         for (int j = 0; j < D; j++) a += Ck[i * D + j] * Prow[(i64)j * n + t];
         row[t] = a;
       }
-      for (int t = n; t < N; t++) row[t] = zero;
-      row[n + k] = sel(w.onl[k], -Ck[i * D], zero);  // Stat[kD, n + k] = −1 for a ray in use
       for (int j = 0; j < D; j++) {
         V l = (i == 0) ? lam[j] : (j == 0 ? lam[i] : (j == i ? lam[0] : zero));  // L(λ)[i, j]
         row[k * D + j] += sel(arrow, l, zero);
       }
+      V cb = sel(w.onl[k], -Ck[i * D], zero);  // Bc: the entry of dλ_l,k (Stat[kD, n + k] = −1 for a ray in use)
+      sq_rays += cb * cb;
     }
     M ul = w.onl[k];
     M wr = ~ul | (use_weak & weak_ray(s_l[k], lam_l[k]));
     e.wray[k] = mask ? wr : e.wray[k];
-    V* row = R + (i64)(n + k) * N;
-    for (int t = 0; t < N; t++) row[t] = zero;
-    row[k * D] = sel(wr, zero, lam_l[k]);
-    row[n + k] = sel(wr, one, s_l[k]);
+    V a = sel(wr, zero, lam_l[k]), b = sel(wr, one, s_l[k]);  // the ray's row: a at dz_kD, b at dλ_l,k
+    sq_rays += a * a + b * b;
+    M sw = vabs(a) > vabs(b);
+    V d = sel(sw, a, b);
+    f.swp[k] = sw;
+    f.c[k] = sel(sw, b, a);
+    f.dinv[k] = 1.0 / sel(d != 0.0, d, one);
+    dmin = vmin(dmin, vabs(d));
   }
-  // LU with partial pivoting, per lane: reciprocal pivots on the diagonal.  Right-looking by panels of PANEL
-  // columns: the trailing rows are updated once per panel, not once per column (for large K the matrix does not
-  // fit in the L1 cache: a quarter of the traffic).  Every entry receives the same updates in the same order as
-  // one column at a time, so the factors are the same to the last bit.
-  constexpr int PANEL = 8;
-  V sq[4] = {zero, zero, zero, zero};  // (four independent sums)
-  const i64 NN = (i64)N * N;
+  V sq[4] = {sq_rays, zero, zero, zero};  // (four independent sums)
+  const i64 NN = (i64)n * n;
   i64 i4 = 0;
   for (; i4 + 3 < NN; i4 += 4)
     for (int x = 0; x < 4; x++) sq[x] += R[i4 + x] * R[i4 + x];
   for (; i4 < NN; i4++) sq[0] += R[i4] * R[i4];
   V sc = vsqrt((sq[0] + sq[1]) + (sq[2] + sq[3]));
-  M ok = (M{} == 0);
+  M ok = dmin > 1e-13 * sc;
+  for (int k = 0; k < K; k++) {  // the rays eliminated: column kD of A becomes that of S
+    const M sw = f.swp[k];
+    const V g = f.c[k] * f.dinv[k];
+    V* cA = f.colA + (i64)k * n;
+    for (int r = 0; r < n; r++) {
+      V a = R[(i64)r * n + k * D];
+      cA[r] = a;
+      R[(i64)r * n + k * D] = sel(sw, -(a * g), a);
+    }
+    for (int i = 0; i < D; i++) {
+      V cb = sel(w.onl[k], -e.C[(k * D + i) * D], zero);
+      R[(i64)(k * D + i) * n + k * D] += sel(sw, cb, -(cb * g));
+    }
+  }
+  // LU with partial pivoting, per lane: reciprocal pivots on the diagonal.  Right-looking by panels of PANEL
+  // columns: the trailing rows are updated once per panel, not once per column (for large K the matrix does not
+  // fit in the L1 cache: a quarter of the traffic).  Every entry receives the same updates in the same order as
+  // one column at a time.
+  constexpr int PANEL = 8;
+  const int N = n;
   auto row = [&](int r) { return R + (i64)r * N; };
   // pivot of column `col` among rows col … N − 1, its row swapped into place (whole rows, per lane, as selects:
   // one pass per distinct pivot row); returns the reciprocal pivot
@@ -251,15 +297,15 @@ static void keep_factors(Exact<D>& e, M mask) {
     e.R = e.R2, e.piv = e.piv2, e.R2 = R, e.piv2 = piv;
     return;
   }
-  const i64 NN = (i64)e.N * e.N;
-  for (i64 i = 0; i < NN; i++) e.R[i] = sel(mask, e.R2[i], e.R[i]);
-  for (int i = 0; i < e.N; i++) e.piv[i] = mask ? e.piv2[i] : e.piv[i];
+  const i64 F = Exact<D>::F(e.K);
+  for (i64 i = 0; i < F; i++) e.R[i] = sel(mask, e.R2[i], e.R[i]);
+  for (int i = 0; i < e.n; i++) e.piv[i] = mask ? e.piv2[i] : e.piv[i];
 }
 
-// Solve R y = y (or Rᵀ y = y) in place with the factors in e.R, e.piv.
+// Solve S y = y (or Sᵀ y = y) in place with the factors in e.R, e.piv (y: n).
 template <int D>
 static void lu_solve(const Exact<D>& e, V* y, bool transpose) {
-  const int N = e.N;
+  const int N = e.n;
   const V* R = e.R;
   auto swap = [&](int i) {
     for (int l = 0; l < LANES; l++) {
@@ -292,6 +338,58 @@ static void lu_solve(const Exact<D>& e, V* y, bool transpose) {
   }
 }
 
+// Solve the reduced system (or its transpose) in place, y: N = n + K (rows / unknowns: contacts' n, rays' K), by
+// S and the ray rows (see the top of this file).
+template <int D>
+static void reduced_solve(const Exact<D>& e, const Work<D>& w, V* y, bool transpose) {
+  const int K = e.K, n = e.n;
+  const V zero = splat(0.0);
+  Factors<D> f(e.R, K);
+  auto colB = [&](int k, int i) { return sel(w.onl[k], -e.C[(k * D + i) * D], zero); };
+  if (!transpose) {
+    for (int k = 0; k < K; k++) {  // the rays' right-hand sides into the contacts' rows
+      const M sw = f.swp[k];
+      const V gd = y[n + k] * f.dinv[k];
+      if (any(sw)) {
+        const V* cA = f.colA + (i64)k * n;
+        const V gs = sel(sw, gd, zero);
+        for (int r = 0; r < n; r++) y[r] -= cA[r] * gs;
+      }
+      for (int i = 0; i < D; i++) y[k * D + i] -= sel(sw, zero, colB(k, i) * gd);
+    }
+    lu_solve(e, y, false);
+    for (int k = 0; k < K; k++) {  // the eliminated unknowns from the ray rows
+      const M sw = f.swp[k];
+      V u = y[k * D], v = (y[n + k] - f.c[k] * u) * f.dinv[k];
+      y[k * D] = sel(sw, v, u);
+      y[n + k] = sel(sw, u, v);
+    }
+  } else {
+    for (int k = 0; k < K; k++) {
+      const M sw = f.swp[k];
+      V h1 = sel(sw, y[n + k], y[k * D]), h2 = sel(sw, y[k * D], y[n + k]);
+      y[k * D] = h1 - f.c[k] * (h2 * f.dinv[k]);
+      y[n + k] = h2;
+    }
+    lu_solve(e, y, true);
+    for (int k = 0; k < K; k++) {
+      const M sw = f.swp[k];
+      V t = zero;
+      for (int i = 0; i < D; i++) t += colB(k, i) * y[k * D + i];
+      if (any(sw)) {
+        const V* cA = f.colA + (i64)k * n;
+        V a[4] = {zero, zero, zero, zero};  // (four independent sums)
+        int r = 0;
+        for (; r + 3 < n; r += 4)
+          for (int x = 0; x < 4; x++) a[x] += cA[r + x] * y[r + x];
+        for (; r < n; r++) a[0] += cA[r] * y[r];
+        t = sel(sw, (a[0] + a[1]) + (a[2] + a[3]), t);
+      }
+      y[n + k] = (y[n + k] - t) * f.dinv[k];
+    }
+  }
+}
+
 // Solve K x = b (transpose: Kᵀ x = b) with the factors at hand.  b, x: (b_stat (n), b_ray (K), b_cone (n)).
 template <int D>
 static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool transpose) {
@@ -306,7 +404,7 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
         y[k * D + i] = sel(e.used[k], t, b[k * D + i]);
       }
     for (int k = 0; k < K; k++) y[n + k] = b[n + k];
-    lu_solve(e, y, false);
+    reduced_solve(e, w, y, false);
     for (int i = 0; i < N; i++) x[i] = y[i];
     matvec<false>(n, w.P, y, [&](int r) { return -b[r]; }, [&](int r, V t) { x[N + r] = t; });
     for (int k = 0; k < K; k++)
@@ -325,7 +423,7 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
         for (int j = 0; j < n; j++) y[j] += w.P[(i64)r * n + j] * g;
         if (i == 0) y[n + k] -= sel(w.onl[k], g, zero);
       }
-    lu_solve(e, y, true);
+    reduced_solve(e, w, y, true);
     for (int k = 0; k < K; k++) {
       x[n + k] = y[n + k];
       for (int i = 0; i < D; i++) {
