@@ -25,8 +25,6 @@ struct Exact {
   int K, n, N;       // N = n + K
   V *R, *R2;         // current factors and a new factorisation: Factors<D> layout (F vectors)
   M *piv, *piv2;     // n: pivot row of each step, per lane
-  V *C;              // K × D × D: coefficient of dλ_q in the cone rows
-  M *used, *wray;    // K: cone eliminated (in use); ray taken as identity (weak)
   V *scale, *scale2; // 1: Frobenius norm (singularity test)
   V *x, *dx, *y;     // N + n: right-hand side, solution (stationarity, rays, cones), reduced work
   V *r_z, *r_l, *r_q, *comp_l, *comp_q;  // residuals at the current point
@@ -34,13 +32,13 @@ struct Exact {
   V *zt, *slt, *llt, *sqt, *lqt;         // trial point
   V *h_l;
 
-  static i64 F(int K) {  // S (n × n), A's columns kD (K × n), per ray: c, 1/d, swapped (see Factors)
+  static i64 F(int K) {  // S (n × n), A's columns kD (K × n), per ray: c, 1/d, swapped; C (see Factors)
     i64 n = (i64)K * D;
-    return n * n + (i64)K * n + 3 * K;
+    return n * n + (i64)K * n + 3 * K + (i64)K * D * D;
   }
   static i64 size(int K) {
     i64 n = (i64)K * D, N = n + K;
-    return 2 * F(K) + 2 * n + (i64)K * D * D + 2 * K + 2 + 3 * (N + n) + 3 * n + 2 * K + 3 * n + 2 * K + 3 * n +
+    return 2 * F(K) + 2 * n + 2 + 3 * (N + n) + 3 * n + 2 * K + 3 * n + 2 * K + 3 * n +
            2 * K + K;
   }
   void carve(V* buf, int K_) {
@@ -56,8 +54,6 @@ struct Exact {
     R = take(F(K)), R2 = take(F(K));
     piv = (M*)take(n), piv2 = (M*)take(n);
     for (int i = 0; i < n; i++) piv[i] = piv2[i] = M{} + i;  // (lanes never factorised still solve in bounds)
-    C = take((i64)K * D * D);
-    used = (M*)take(K), wray = (M*)take(K);
     scale = take(1), scale2 = take(1);
     x = take(N + n), dx = take(N + n), y = take(N + n);
     r_z = take(n), r_q = take(n), comp_q = take(n), r_l = take(K), comp_l = take(K);
@@ -68,15 +64,15 @@ struct Exact {
 };
 
 // The parts of a factorisation record (Exact::R, R2): the LU factors of S (n × n, row-major), A's original column
-// kD of each ray k (K × n), and per ray the other entry c of its row, 1/d of its pivot d and whether dz_kD and
-// dλ_l,k traded places.
+// kD of each ray k (K × n), per ray the other entry c of its row, 1/d of its pivot d and whether dz_kD and
+// dλ_l,k traded places, and the coefficients C (K × D × D) of dλ_q in the cone rows.
 template <int D>
 struct Factors {
-  V *S, *colA, *c, *dinv;
+  V *S, *colA, *c, *dinv, *C;
   M* swp;
   Factors(V* R, int K) {
     const i64 n = (i64)K * D;
-    S = R, colA = R + n * n, c = colA + K * n, dinv = c + K, swp = (M*)(dinv + K);
+    S = R, colA = R + n * n, c = colA + K * n, dinv = c + K, swp = (M*)(dinv + K), C = dinv + 2 * K;
   }
 };
 
@@ -151,13 +147,13 @@ static inline void update_row(V* rr, const V* const* prow, int m, int c0, int j0
   }
 }
 
-// Assemble the reduced matrix at (s, λ), eliminate the rays into S (e.R2; e.C, e.used, e.wray for the lanes of
-// `mask`), then the LU factors of S with pivots in e.piv2.  use_weak: lanes whose weakly active cones and rays are
+// Assemble the reduced matrix at (s, λ), eliminate the rays into S, then the LU factors of S: a factorisation
+// record in e.R2, with pivots in e.piv2.  use_weak: lanes whose weakly active cones and rays are
 // taken as inactive.  Returns the lanes where it is nonsingular (the rays' pivots and S's above 1e-13 of the
 // Frobenius norm of the reduced matrix).
 template <int D>
 static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, const V* s_q, const V* lam_q,
-                M use_weak, M mask) {
+                M use_weak) {
   const int K = e.K, n = e.n;
   const V zero = splat(0.0), one = splat(1.0);
   Factors<D> f(e.R2, K);
@@ -167,7 +163,6 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
     M uq = w.on[k];
     M weak = uq & use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
     M arrow = uq & ~weak;
-    e.used[k] = mask ? uq : e.used[k];
     const V* s = s_q + k * D;
     const V* lam = lam_q + k * D;
     V Ck[D * D];
@@ -175,7 +170,7 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       for (int j = 0; j < D; j++) {
         V l = (i == 0) ? s[j] : (j == 0 ? s[i] : (j == i ? s[0] : zero));  // L(s)[i, j]
         Ck[i * D + j] = sel(arrow, l, i == j ? one : zero);
-        e.C[(k * D + i) * D + j] = sel(mask, Ck[i * D + j], e.C[(k * D + i) * D + j]);
+        f.C[(k * D + i) * D + j] = Ck[i * D + j];
       }
     for (int i = 0; i < D; i++) {
       V* row = R + (i64)(k * D + i) * n;
@@ -194,7 +189,6 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
     }
     M ul = w.onl[k];
     M wr = ~ul | (use_weak & weak_ray(s_l[k], lam_l[k]));
-    e.wray[k] = mask ? wr : e.wray[k];
     V a = sel(wr, zero, lam_l[k]), b = sel(wr, one, s_l[k]);  // the ray's row: a at dz_kD, b at dλ_l,k
     sq_rays += a * a + b * b;
     M sw = vabs(a) > vabs(b);
@@ -222,7 +216,7 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       R[(i64)r * n + k * D] = sel(sw, -(a * g), a);
     }
     for (int i = 0; i < D; i++) {
-      V cb = sel(w.onl[k], -e.C[(k * D + i) * D], zero);
+      V cb = sel(w.onl[k], -f.C[(k * D + i) * D], zero);
       R[(i64)(k * D + i) * n + k * D] += sel(sw, cb, -(cb * g));
     }
   }
@@ -345,7 +339,7 @@ static void reduced_solve(const Exact<D>& e, const Work<D>& w, V* y, bool transp
   const int K = e.K, n = e.n;
   const V zero = splat(0.0);
   Factors<D> f(e.R, K);
-  auto colB = [&](int k, int i) { return sel(w.onl[k], -e.C[(k * D + i) * D], zero); };
+  auto colB = [&](int k, int i) { return sel(w.onl[k], -f.C[(k * D + i) * D], zero); };
   if (!transpose) {
     for (int k = 0; k < K; k++) {  // the rays' right-hand sides into the contacts' rows
       const M sw = f.swp[k];
@@ -396,12 +390,13 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
   const int K = e.K, n = e.n, N = e.N;
   const V zero = splat(0.0);
   V* y = e.y;
+  const V* C = Factors<D>(e.R, K).C;
   if (!transpose) {
     for (int k = 0; k < K; k++)
       for (int i = 0; i < D; i++) {
         V t = b[N + k * D + i];
-        for (int j = 0; j < D; j++) t += e.C[(k * D + i) * D + j] * b[k * D + j];
-        y[k * D + i] = sel(e.used[k], t, b[k * D + i]);
+        for (int j = 0; j < D; j++) t += C[(k * D + i) * D + j] * b[k * D + j];
+        y[k * D + i] = sel(w.on[k], t, b[k * D + i]);
       }
     for (int k = 0; k < K; k++) y[n + k] = b[n + k];
     reduced_solve(e, w, y, false);
@@ -412,14 +407,14 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
         int r = k * D + i;
         V t = x[N + r];
         if (i == 0) t -= sel(w.onl[k], y[n + k], zero);
-        x[N + r] = sel(e.used[k], t, b[N + r]);
+        x[N + r] = sel(w.on[k], t, b[N + r]);
       }
   } else {
     for (int i = 0; i < N; i++) y[i] = b[i];
     for (int k = 0; k < K; k++)
       for (int i = 0; i < D; i++) {
         int r = k * D + i;
-        V g = sel(e.used[k], b[N + r], zero);
+        V g = sel(w.on[k], b[N + r], zero);
         for (int j = 0; j < n; j++) y[j] += w.P[(i64)r * n + j] * g;
         if (i == 0) y[n + k] -= sel(w.onl[k], g, zero);
       }
@@ -429,17 +424,17 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
       for (int i = 0; i < D; i++) {
         int r = k * D + i;
         V t = -b[N + r];
-        for (int j = 0; j < D; j++) t += e.C[(k * D + j) * D + i] * y[k * D + j];
-        x[r] = sel(e.used[k], t, y[r]);
-        x[N + r] = sel(e.used[k], y[r], b[N + r]);
+        for (int j = 0; j < D; j++) t += C[(k * D + j) * D + i] * y[k * D + j];
+        x[r] = sel(w.on[k], t, y[r]);
+        x[N + r] = sel(w.on[k], y[r], b[N + r]);
       }
     }
   }
 }
 
 // Newton steps (at most `steps` factorisations) from the iterate in w (z, s_l, …) in the lanes of `run`; the
-// factors are reused for chord steps while the residual falls by 100× per step.  Returns the
-// exact KKT residual of each lane's returned point.
+// factors are reused for chord steps while the residual falls by 100× per step.  Returns the exact KKT residual of
+// each lane's returned point.
 template <int D>
 static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
   const int K = e.K, n = e.n, N = e.N;
@@ -457,8 +452,8 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
     fresh &= ~out_of_steps;
     if (!any(run)) break;
     if (any(fresh)) {
-      M ok = factor(e, w, s_l, lam_l, s_q, lam_q, use_weak, fresh);
-      keep_factors(e, fresh);
+      M ok = factor(e, w, s_l, lam_l, s_q, lam_q, use_weak);
+      keep_factors(e, fresh | ~run);  // (the lanes that have stopped need no factors)
       n_factor += sel(fresh, splat(1.0), zero);
       run &= ~(fresh & ~ok);  // singular: stop (the caller's weak pass or rerun handles it)
       fresh &= ok;
@@ -543,11 +538,11 @@ template <int D>
 static M adjoint(Exact<D>& e, Work<D>& w, const V* g) {
   const int n = e.n, N = e.N;
   M all = M{} == 0, none = M{} != 0;
-  M ok = factor(e, w, w.slb, w.llb, w.sqb, w.lqb, none, all);
+  M ok = factor(e, w, w.slb, w.llb, w.sqb, w.lqb, none);
   keep_factors(e, all);
   M bad = ~ok;
   if (any(bad)) {
-    M ok2 = factor(e, w, w.slb, w.llb, w.sqb, w.lqb, all, bad);
+    M ok2 = factor(e, w, w.slb, w.llb, w.sqb, w.lqb, all);
     keep_factors(e, bad);
     ok |= bad & ok2;
   }
