@@ -65,7 +65,7 @@ class ImplicitConeQP(torch.autograd.Function):
     def backward(ctx, grad_f):  # noqa: D102
         sol: ScaledSolution = ctx.sol
         res = sol.result
-        d = res.s_q.shape[-1]
+        d = res.d
         gf = np.ascontiguousarray(grad_f.to(torch.float64).numpy())
         u, v_l = adjoint_solve(res, sol.gamma[:, None] * sol.T * gf)
         need = np.array(ctx.needs_input_grad[:4], dtype=np.bool_)
@@ -89,7 +89,7 @@ def adjoint_solve(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 def _adjoint_lstsq(res: IPMResult, g: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares adjoint for the selected (degenerate) elements, weakly active cones taken as inactive."""
-    d = res.s_q.shape[-1]
+    d = res.d
     n, K = g.shape[-1], res.on.shape[-1]
     parts = [np.ascontiguousarray(t[sel]) for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)]
     Kmat = exact.kkt_matrix_batch(*parts, contact_dims(d), True)
