@@ -58,7 +58,7 @@ class ImplicitConeQP(torch.autograd.Function):
         # (the form with ctx: the one with setup_context binds the arguments by signature on every call, ≈ 20 µs)
         ctx.sol = sol
         ctx.dtypes = tuple(t.dtype if t is not None else None for t in (A, q, mu, lower))  # (lower may be None)
-        return torch.from_numpy(sol.gamma[:, None] * sol.T * sol.z).to(A.dtype)
+        return torch.from_numpy(scaling.unscale(sol.gamma, sol.T, sol.z)).to(A.dtype)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -67,7 +67,7 @@ class ImplicitConeQP(torch.autograd.Function):
         res = sol.result
         d = res.d
         gf = np.ascontiguousarray(grad_f.to(torch.float64).numpy())
-        u, v_l = adjoint_solve(res, sol.gamma[:, None] * sol.T * gf)
+        u, v_l = adjoint_solve(res, scaling.unscale(sol.gamma, sol.T, gf))
         need = np.array(ctx.needs_input_grad[:4], dtype=np.bool_)
         arrays = (u, v_l, sol.z, gf, sol.A, sol.q, sol.T, sol.S, sol.gamma, res.lam_l, res.on_l, sol.lower_scale)
         grads = scaling.chain_rule_batch(*arrays, sol.slide, contact_dims(d), need)

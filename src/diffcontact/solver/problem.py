@@ -124,11 +124,12 @@ def _float64(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray((t.detach() if t.requires_grad else t).numpy(), dtype=np.float64)
 
 
-def _check_values(A, q, mu, lower, active) -> None:
+def _check_values(A, q, mu, lower, active) -> float:
     """Raise ``ValueError`` naming the batch elements where A, q, mu or lower are not finite or mu, lower < 0
-    (arrays of ``_as_arrays``)."""
-    if _values_ok(A, q, mu, lower):
-        return
+    (arrays of ``_as_arrays``); returns the largest μ (0 if there is none)."""
+    mu_max = _values_ok(A, q, mu, lower)
+    if mu_max == mu_max:  # (not NaN)
+        return mu_max
     B = len(mu)
     for name, x in (("A", A), ("q", q), ("mu", mu), ("lower", lower)):
         bad = ~np.isfinite(x).reshape(B, -1).all(-1)
@@ -138,11 +139,13 @@ def _check_values(A, q, mu, lower, active) -> None:
             raise ValueError(f"{name} must be >= 0; negative in batch elements {_first((x < 0).any(-1))}")
     if mu.size and mu.max() > MU_MAX:
         raise ValueError(f"mu must be <= {MU_MAX:g}; larger in batch elements {_first((mu > MU_MAX).any(-1))}")
+    raise AssertionError("_values_ok and _check_values disagree")  # (unreachable)
 
 
 @njit(cache=True, nogil=True)
 def _values_ok(A, q, mu, lower):
-    """True if A, q, mu, lower are finite and mu, lower ≥ 0 (one pass, no temporaries)."""
+    """The largest μ (0 if there is none) if A, q, mu, lower are finite and 0 ≤ mu ≤ ``MU_MAX``, lower ≥ 0, else NaN
+    (one pass, no temporaries)."""
     a = A.ravel()
     s0 = s1 = s2 = s3 = 0.0  # (four independent sums: four times the throughput of one)
     for i in range(0, len(a) - 3, 4):
@@ -155,11 +158,13 @@ def _values_ok(A, q, mu, lower):
         total += x * 0.0
     for x in q.flat:
         total += x * 0.0
+    mu_max = 0.0
     for x in mu.flat:
         total += x * 0.0 if 0 <= x <= MU_MAX else np.nan
+        mu_max = max(mu_max, x)
     for x in lower.flat:
         total += x * 0.0 if x >= 0 else np.nan
-    return total == 0.0
+    return mu_max if total == 0.0 else np.nan
 
 
 def _first(mask, k: int = 10) -> str:
@@ -218,7 +223,7 @@ def solve_cone_qp(
         A, q, mu, lower, active = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (A, q, mu, lower, active))
     d = _check_shapes(A, q, mu, lower, active)
     arrays = _as_arrays(A, q, mu, lower, active)
-    _check_values(*arrays)
+    mu_max = _check_values(*arrays)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
     opts = (tol, acceptable_tol, max_iter, on_failure)
     found = flat.flat_elements(arrays[0], arrays[2], arrays[4], d, flat.psd_tol(out_dtype))
@@ -231,7 +236,7 @@ def solve_cone_qp(
         else:
             f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
     else:
-        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts, arrays=arrays)
+        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts, arrays=arrays, mu_max=mu_max)
     if f.dtype != out_dtype or device.type != "cpu":
         f = f.to(device=device, dtype=out_dtype)
     if return_info:
@@ -240,11 +245,13 @@ def solve_cone_qp(
     return f
 
 
-def _solve_with_retries(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure, arrays=None):
+def _solve_with_retries(
+    A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure, arrays=None, mu_max=None
+):
     """``_solve_scaled``, then ``_solve_sliding`` where a contact with μ ≥ ``scaling.MU_FREE`` slides, and the failure
     policy (``on_failure``); returns (f, result) as ``_solve_scaled``."""
     opts = (tol, acceptable_tol, max_iter)
-    f, result, outside = _solve_scaled(A, q, mu, lower, active, d, *opts, arrays=arrays)
+    f, result, outside = _solve_scaled(A, q, mu, lower, active, d, *opts, arrays=arrays, mu_max=mu_max)
     if outside is not None and outside.any():
         f = _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result)
     _raise_on_failure(result.status, on_failure)
@@ -273,12 +280,13 @@ def _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result):
     return f.index_copy(0, r, again.to(f.dtype))
 
 
-def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays=None, sliding=None):
+def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays=None, mu_max=None, sliding=None):
     """Solve the batch (checked tensors of ``solve_cone_qp``; lower, active may be None) with the retry policy
     below; returns (f (B, n) float64, differentiable (``ImplicitConeQP``) where an input requires a gradient, the
     kernel's ``IPMResult``, and (B, K) bool: the contacts scaled free whose answer leaves their cone, or None).
     arrays: ``_as_arrays`` of the tensors if made already; the solver works on them, the tensors are only the ends
-    of the autograd graph.  sliding: (B, K) bool, contacts with μ ≥ ``scaling.MU_FREE`` scaled for sliding, or None.
+    of the autograd graph; mu_max: the largest μ if known (``_check_values``).  sliding: (B, K) bool, contacts with
+    μ ≥ ``scaling.MU_FREE`` scaled for sliding, or None.
 
     The data are scaled once (f = γ·S·D·z, ``scaling.py``); every attempt then runs the compiled interior-point
     method with polishing (``lanes.solve``) on some elements, in up to two passes:
@@ -307,7 +315,10 @@ def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arr
     )
     free = None  # ((B, K) bool: contacts with μ ≥ MU_FREE scaled free, checked as such: their cone comes after)
     mu_check = mu64
-    mu_max = mu64.max() if d > 1 and mu64.size else 0.0  # (μ is unused for d = 1)
+    if d == 1:  # (μ is unused)
+        mu_max = 0.0
+    elif mu_max is None:
+        mu_max = mu64.max() if mu64.size else 0.0
     if mu_max >= scaling.MU_FREE:
         free = active64 & (mu64 >= scaling.MU_FREE) & (True if sliding is None else ~sliding)
         mu_check = np.where(free, 1e300, mu64)
@@ -383,7 +394,7 @@ def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arr
         # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
         slide = speed * sigma / gamma[:, None] * zero_mu
     if not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (A, q, mu, lower))):
-        return torch.from_numpy(gamma[:, None] * T * z), result, outside
+        return torch.from_numpy(scaling.unscale(gamma, T, z)), result, outside
     if slide is None:
         slide = np.zeros(sigma.shape)
     sol = ScaledSolution(A64, q64, T, S, gamma, lower_scale, slide, z, result)

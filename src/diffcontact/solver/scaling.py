@@ -133,6 +133,18 @@ def _scale_range(
                     P[b, r, r] += 1.0
 
 
+@njit(cache=True, nogil=True)
+def unscale(gamma, T, z):
+    """(γ·T)⊙z (B, n) for gamma (B,), T, z (B, n): f of the scaled solution z, or γT⊙g for the adjoint's right-hand
+    side (as numpy's ``gamma[:, None] * T * z``, bit for bit, in one compiled call: a µs less at B = 1)."""
+    B, n = z.shape
+    f = np.empty((B, n))
+    for b in range(B):
+        for i in range(n):
+            f[b, i] = gamma[b] * T[b, i] * z[b, i]
+    return f
+
+
 def outside_cones(z, mu, free, d):
     """(B, K) bool: the contacts ``free`` ((B, K) bool: μ ≥ ``MU_FREE``, scaled free) whose answer z (B, n) of the
     scaled problem lies outside their cone, ‖f_t‖ > μ f_n (f = γσz on their rows)."""
