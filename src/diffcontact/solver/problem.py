@@ -240,8 +240,8 @@ def solve_cone_qp(
     if f.dtype != out_dtype or device.type != "cpu":
         f = f.to(device=device, dtype=out_dtype)
     if return_info:
-        info = (torch.from_numpy(a) for a in (result.status, result.iterations, result.residual))
-        return f, SolverInfo(*info)
+        from_numpy = torch.from_numpy
+        return f, SolverInfo(from_numpy(result.status), from_numpy(result.iterations), from_numpy(result.residual))
     return f
 
 
