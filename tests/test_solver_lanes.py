@@ -105,6 +105,19 @@ def test_python_and_kernel_agree_on_the_shared_facts():
     assert [bool(status.is_failure(s)) for s in Status] == [False, False, True, True, True]
 
 
+@pytest.mark.parametrize("args", [lanes.SolveArgs, lanes.AdjointArgs, lanes.FlatArgs])
+def test_packed_arguments_read_back_field_by_field(args):
+    """The bytes the kernel receives (``lanes._packer``) hold every field where the ctypes struct (api.h) has it."""
+    kinds = {
+        ctypes.c_int64: lambda i: -3 * i - 1,
+        ctypes.c_double: lambda i: 0.25 + i,
+        ctypes.c_void_p: lambda i: 2**40 + i,
+    }
+    values = [kinds[t](i) for i, (_, t) in enumerate(args._fields_)]
+    back = args.from_buffer_copy(lanes._packer(args).pack(*values))
+    assert [getattr(back, name) for name, _ in args._fields_] == values
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_solution_does_not_depend_on_the_batch_around_it(d):
     """Lanes are independent: an element's solution and gradient are the same bit for bit whether it is solved

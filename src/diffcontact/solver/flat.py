@@ -44,6 +44,7 @@ those are decomposed.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,6 +65,7 @@ ALM_TOL = 1e-13  # relative miss of the equality at convergence
 ALM_ACCEPT = 1e-9  # ... below which an iterate counts as a minimiser
 
 
+@functools.cache
 def psd_tol(dtype: torch.dtype) -> float:
     """τ of the module docstring for an input of this dtype."""
     return max(1e-6, 100.0 * torch.finfo(dtype).eps)

@@ -57,22 +57,27 @@ class ImplicitConeQP(torch.autograd.Function):
     def forward(ctx, A, q, mu, lower, sol: ScaledSolution):  # noqa: D102
         # (the form with ctx: the one with setup_context binds the arguments by signature on every call, ≈ 20 µs)
         ctx.sol = sol
-        ctx.dtypes = tuple(t.dtype if t is not None else None for t in (A, q, mu, lower))  # (lower may be None)
-        return torch.from_numpy(sol.gamma[:, None] * sol.T * sol.z).to(A.dtype)
+        ctx.dtypes = (A.dtype, q.dtype, mu.dtype, None if lower is None else lower.dtype)
+        return _as_dtype(torch.from_numpy(scaling.unscale(sol.gamma, sol.T, sol.z)), A.dtype)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_f):  # noqa: D102
         sol: ScaledSolution = ctx.sol
         res = sol.result
-        d = res.s_q.shape[-1]
-        gf = np.ascontiguousarray(grad_f.to(torch.float64).numpy())
-        u, v_l = adjoint_solve(res, sol.gamma[:, None] * sol.T * gf)
+        d = res.d
+        gf = np.ascontiguousarray(_as_dtype(grad_f, torch.float64).numpy())
+        u, v_l = adjoint_solve(res, scaling.unscale(sol.gamma, sol.T, gf))
         need = np.array(ctx.needs_input_grad[:4], dtype=np.bool_)
         arrays = (u, v_l, sol.z, gf, sol.A, sol.q, sol.T, sol.S, sol.gamma, res.lam_l, res.on_l, sol.lower_scale)
         grads = scaling.chain_rule_batch(*arrays, sol.slide, contact_dims(d), need)
-        grads = [torch.from_numpy(g) if want else None for g, want in zip(grads, need)]
-        return tuple(g.to(dt) if g is not None else None for g, dt in zip(grads, ctx.dtypes)) + (None,)
+        return (*(_as_dtype(torch.from_numpy(g), dt) if want else None for g, want, dt in zip(grads, need, ctx.dtypes)),
+                None)  # fmt: skip
+
+
+def _as_dtype(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """t in this dtype (``t.to(dtype)`` costs a µs even where it changes nothing: three times in a small call)."""
+    return t if t.dtype == dtype else t.to(dtype)
 
 
 def adjoint_solve(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,14 +87,14 @@ def adjoint_solve(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray
     at a stick/slip or touch/separate switch) the dense system is solved by least squares instead.
     """
     u, v_l, ok = lanes.adjoint(res, g)
-    if not ok.all():
+    if np.count_nonzero(ok) < len(ok):
         u[~ok], v_l[~ok] = _adjoint_lstsq(res, g, ~ok)
     return u, v_l
 
 
 def _adjoint_lstsq(res: IPMResult, g: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares adjoint for the selected (degenerate) elements, weakly active cones taken as inactive."""
-    d = res.s_q.shape[-1]
+    d = res.d
     n, K = g.shape[-1], res.on.shape[-1]
     parts = [np.ascontiguousarray(t[sel]) for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)]
     Kmat = exact.kkt_matrix_batch(*parts, contact_dims(d), True)

@@ -29,8 +29,8 @@ import functools
 import importlib.machinery
 import math
 import os
+import struct
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numba
@@ -97,6 +97,19 @@ class _Constants(ctypes.Structure):
 
 API_VERSION = 3
 
+_CODES = {_i64: "q", _f64: "d", _ptr: "Q"}
+
+
+def _packer(args: type[ctypes.Structure]) -> struct.Struct:
+    """The bytes of an argument struct (all fields 8 bytes, no padding) packed in one call: 4× faster than making
+    the ctypes Structure (≈ 1.5 µs of a call at B = 1, d = 3, K = 1); the kernel reads them through the pointer."""
+    packer = struct.Struct("=" + "".join(_CODES[t] for _, t in args._fields_))
+    assert packer.size == ctypes.sizeof(args), args
+    return packer
+
+
+_pack_solve, _pack_adjoint, _pack_flat = (_packer(a).pack for a in (SolveArgs, AdjointArgs, FlatArgs))
+
 
 def _load() -> ctypes.CDLL:
     """The kernel's shared library (built by ``setup.py`` as ``_lanes`` with the extension suffix)."""
@@ -128,11 +141,12 @@ def _load() -> ctypes.CDLL:
     lib.diffcontact_ipm_select.argtypes = [ctypes.c_int]
     lib.diffcontact_ipm_width.restype = ctypes.c_int
     lib.diffcontact_ipm_solve.restype = ctypes.c_int
-    lib.diffcontact_ipm_solve.argtypes = [ctypes.POINTER(SolveArgs), _i64, _i64]
+    # (the argument structs as bytes of ``_packer``: c_char_p passes a pointer to them, which the kernel only reads)
+    lib.diffcontact_ipm_solve.argtypes = [ctypes.c_char_p, _i64, _i64]
     lib.diffcontact_adjoint_solve.restype = ctypes.c_int
-    lib.diffcontact_adjoint_solve.argtypes = [ctypes.POINTER(AdjointArgs), _i64, _i64]
+    lib.diffcontact_adjoint_solve.argtypes = [ctypes.c_char_p, _i64, _i64]
     lib.diffcontact_flat_test.restype = ctypes.c_int
-    lib.diffcontact_flat_test.argtypes = [ctypes.POINTER(FlatArgs), _i64, _i64]
+    lib.diffcontact_flat_test.argtypes = [ctypes.c_char_p, _i64, _i64]
     return lib
 
 
@@ -149,7 +163,7 @@ def supported_widths() -> list[int]:
 def select_width(width: int | None = None) -> int:
     """Use the kernel of this lane width (None: ``DIFFCONTACT_LANES`` if set, else the widest this CPU runs);
     returns it."""
-    global _width
+    global _width, _inline_below
     source = f"lane width {width}"
     if width is None:
         env = os.environ.get("DIFFCONTACT_LANES", "")
@@ -157,7 +171,7 @@ def select_width(width: int | None = None) -> int:
         width = int(env) if env.strip().isdigit() else (supported_widths()[0] if not env else -1)
     if width not in (8, 4, 2) or not _lib.diffcontact_ipm_select(width):
         raise ValueError(f"{source}: not a lane width this CPU runs; choose one of {supported_widths()}")
-    _width = width
+    _width, _inline_below = width, 0
     return width
 
 
@@ -169,6 +183,7 @@ def current_width() -> int:
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 _numba_started = False
+_inline_below = 0  # batches smaller than this run in the calling thread (set by the first call of ``parallel``)
 
 
 def parallel(run, count: int) -> None:
@@ -178,7 +193,10 @@ def parallel(run, count: int) -> None:
     running code that releases the GIL (this kernel, numba functions compiled with ``nogil``).  One pool for
     every stage: OpenMP workers of a ``prange`` would spin after their loop and compete with it for the cores.
     """
-    global _pool, _pool_size, _numba_started
+    global _pool, _pool_size, _numba_started, _inline_below
+    if count < _inline_below:  # (one thread: the common small call, without the questions below)
+        run(0, count)
+        return
     width = current_width()
     if not _numba_started:
         # numba starts its threading layer on the first query, which can change the state of the OpenMP runtime
@@ -186,6 +204,7 @@ def parallel(run, count: int) -> None:
         # results do not depend on the sizes of its first batches
         numba.get_num_threads()
         _numba_started = True
+        _inline_below = 4 * width
     # (one thread below 4 groups, without asking numba: its query costs µs, a problem of a simulation step ~10 µs)
     threads = min(numba.get_num_threads(), count // (2 * width)) if count >= 4 * width else 1
     if threads <= 1:
@@ -222,53 +241,69 @@ def _addresses(a, b, c, d, e, f, g):
     return a.ctypes.data, b.ctypes.data, c.ctypes.data, d.ctypes.data, e.ctypes.data, f.ctypes.data, g.ctypes.data
 
 
-@dataclass
+class _Output:
+    """An output of ``IPMResult``: a view of its buffer, made on first access and then kept as an instance attribute
+    (a call without gradients reads only z and status; eight views made up front cost 3 µs of a small call)."""
+
+    def __init__(self, i: int, dtype=np.float64):
+        self.i, self.dtype = i, dtype
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj, objtype=None):
+        if obj is None:
+            return self
+        a, b, shape = obj._slices[self.i]
+        view = obj._buffer[a:b].reshape(shape)
+        view = view if self.dtype is np.float64 else view.view(self.dtype)
+        obj.__dict__[self.name] = view  # (shadows this non-data descriptor from now on)
+        return view
+
+
 class IPMResult:
     """What ``solve`` returns: the solution, its status, and what the backward pass needs (float64 numpy, C-contiguous;
     B batch, K contacts, n = K·d).  Rows not solved keep their initial values (z = 0, unit ray slacks and
-    multipliers, status CONVERGED)."""
+    multipliers, status CONVERGED).  The outputs are views of one buffer, whose addresses are ``addresses``."""
 
-    z: np.ndarray  # (B, n)
-    s_l: np.ndarray  # (B, K) slack and multiplier of the rays
-    lam_l: np.ndarray
-    s_q: np.ndarray  # (B, K, d) slack and multiplier of the second-order cones
-    lam_q: np.ndarray
-    status: np.ndarray  # (B,) int64 ``Status`` codes
-    iterations: np.ndarray  # (B,) int64 interior-point iterations
-    residual: np.ndarray  # (B,) scaled KKT residual of the returned point
-    P: np.ndarray  # (B, n, n) the problem's data, for the backward pass
-    on: np.ndarray  # (B, K) bool, cones in use
-    on_l: np.ndarray  # (B, K) bool, rays in use
-    # the addresses of the OUTPUTS (set by ``empty``, whose arrays are views of one buffer; None: taken per call)
-    addresses: list[int] | None = field(default=None, repr=False, compare=False)
+    z = _Output(0)  # (B, n)
+    s_l = _Output(1)  # (B, K) slack and multiplier of the rays
+    lam_l = _Output(2)
+    s_q = _Output(3)  # (B, K, d) slack and multiplier of the second-order cones
+    lam_q = _Output(4)
+    status = _Output(5, np.int64)  # (B,) int64 ``Status`` codes
+    iterations = _Output(6, np.int64)  # (B,) int64 interior-point iterations
+    residual = _Output(7)  # (B,) scaled KKT residual of the returned point
 
     OUTPUTS = ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")  # as in ``SolveArgs``
 
-    @classmethod
-    def empty(cls, P: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int) -> IPMResult:
-        """Outputs in their initial state for the problems (P, on, on_l): views of one buffer."""
+    def __init__(self, P: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int):
+        """Outputs in their initial state for the problems P (B, n, n) (the problem's data, for the backward pass),
+        on (B, K) bool (cones in use) and on_l (B, K) bool (rays in use), of contact dimension d."""
         B, K = on.shape
-        size, slices, ones = _layout(B, K, d)
-        buffer = np.zeros(size)  # (8-byte items: the int64 outputs are views of it too)
-        buffer[ones] = 1.0  # unit ray slacks and multipliers
-        base = _address(buffer)
-        z, s_l, lam_l, s_q, lam_q, status, iterations, residual = (
-            buffer[a:b].reshape(shape) if len(shape) > 1 else buffer[a:b] for a, b, shape in slices
-        )
-        addresses = [base + 8 * a for a, _, _ in slices]
-        return cls(z, s_l, lam_l, s_q, lam_q, status.view(np.int64), iterations.view(np.int64), residual, P, on, on_l,
-                   addresses)  # fmt: skip
+        self.P, self.on, self.on_l, self.d = P, on, on_l, d
+        self._slices, initial = _layout(B, K, d)
+        self._buffer = initial.copy()  # (8-byte items: the int64 outputs are views of it too)
+        base = _address(self._buffer)
+        self.addresses = [base + 8 * a for a, _, _ in self._slices]
+
+    def __repr__(self) -> str:
+        B, n = self.z.shape
+        return f"IPMResult(B={B}, n={n}, status={self.status!r})"
 
 
 @functools.lru_cache(maxsize=64)
-def _layout(B: int, K: int, d: int) -> tuple[int, tuple, slice]:
-    """The layout of ``IPMResult.empty``'s buffer: its size, (start, stop, shape) of each output in
-    ``IPMResult.OUTPUTS`` order, and the slice of the unit ray slacks and multipliers."""
+def _layout(B: int, K: int, d: int) -> tuple[tuple, np.ndarray]:
+    """The layout of an ``IPMResult``'s buffer: (start, stop, shape) of each output in ``IPMResult.OUTPUTS``
+    order, and the buffer's initial content (read-only: zeros, and unit ray slacks and multipliers)."""
     slices, end = [], 0
     for shape in ((B, K * d), (B, K), (B, K), (B, K, d), (B, K, d), (B,), (B,), (B,)):
         start, end = end, end + math.prod(shape)
         slices.append((start, end, shape))
-    return end, tuple(slices), slice(slices[1][0], slices[2][1])
+    initial = np.zeros(end)
+    initial[slices[1][0] : slices[2][1]] = 1.0
+    initial.flags.writeable = False
+    return tuple(slices), initial
 
 
 _NO_TRACE = np.zeros((0, 0, 4))
@@ -297,18 +332,18 @@ def solve(
     (default: all); the options are the fields of ``SolveArgs`` (``csrc/api.h``), under the same names.
 
     P: (B, n, n), c: (B, n), lower: (B, K) float64; on, on_l: (B, K) bool; idx: (m,) int64 (all C-contiguous).
-    Writes the rows ``idx`` of ``out`` (default: a new ``IPMResult.empty``) and returns it.  ``trace`` (B, T, 4),
+    Writes the rows ``idx`` of ``out`` (default: a new ``IPMResult``) and returns it.  ``trace`` (B, T, 4),
     if given, receives per iteration the primal and dual residuals, the gap and the step taken (for diagnosis).
     """
     B, K = lower.shape
-    out = IPMResult.empty(P, on, on_l, d) if out is None else out
+    out = IPMResult(P, on, on_l, d) if out is None else out
     idx = np.arange(B, dtype=np.int64) if idx is None else idx
     if trace is None:
         trace = _NO_TRACE
     elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
         raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
     addresses = _addresses(P, c, lower, on, on_l, idx, trace)
-    args = SolveArgs(
+    args = _pack_solve(
         *addresses[:5],
         K,
         d,
@@ -320,12 +355,11 @@ def solve(
         start_margin,
         refine_tol,
         polish_steps,
-        *(out.addresses or [_address(getattr(out, name)) for name in IPMResult.OUTPUTS]),
+        *out.addresses,
         addresses[6] if trace.size else 0,
         trace.shape[1],
     )
-    ref = ctypes.byref(args)
-    parallel(lambda start, stop: _check(_lib.diffcontact_ipm_solve(ref, start, stop), K), len(idx))
+    parallel(lambda start, stop: _check(_lib.diffcontact_ipm_solve(args, start, stop), K), len(idx))
     return out
 
 
@@ -333,15 +367,13 @@ def adjoint(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     """Solve Kᵀ[u; v] = [g; 0] per element at the solution ``res`` (``implicit.py``), the weakly active cones of
     singular elements taken as inactive.  g: (B, n) float64, C-contiguous.  Returns u: (B, n), the rays' v: (B, K)
     and ok: (B,) bool (False where K is singular even so)."""
-    B, K = res.s_l.shape
-    n = K * res.s_q.shape[-1]
+    B, K = res.on.shape
+    n = K * res.d
     u, v_l = np.empty((B, n)), np.empty((B, K))
     ok = np.empty(B, dtype=np.bool_)
-    solution = res.addresses[1:5] if res.addresses else [_address(a) for a in (res.s_l, res.lam_l, res.s_q, res.lam_q)]
     at = _addresses(res.P, res.on, res.on_l, g, u, v_l, ok)
-    args = AdjointArgs(at[0], *solution, *at[1:3], K, res.s_q.shape[-1], *at[3:])
-    ref = ctypes.byref(args)
-    parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(ref, start, stop), K), B)
+    args = _pack_adjoint(at[0], *res.addresses[1:5], *at[1:3], K, res.d, *at[3:])
+    parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(args, start, stop), K), B)
     return u, v_l, ok
 
 
@@ -351,7 +383,6 @@ def flat_test(A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: fl
     B, K = mu.shape
     out = np.zeros(B, dtype=np.bool_)
     at = _addresses(A, mu, active, out, out, out, out)
-    args = FlatArgs(*at[:3], K, d, tol, at[3])
-    ref = ctypes.byref(args)
-    parallel(lambda start, stop: _check(_lib.diffcontact_flat_test(ref, start, stop), K), B)
+    args = _pack_flat(*at[:3], K, d, tol, at[3])
+    parallel(lambda start, stop: _check(_lib.diffcontact_flat_test(args, start, stop), K), B)
     return out

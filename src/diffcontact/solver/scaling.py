@@ -49,12 +49,13 @@ def scale_batch(A, q, mu, lower, active, dims, sliding=None):
     """
     B, K = mu.shape
     n = K * len(dims)
+    e, z = np.empty, np.zeros  # (spelled out: generator expressions cost 2 µs more, a tenth of a small call)
     out = (
-        *(np.empty((B, n, n)) for _ in range(2)),
-        *(np.empty((B, n)) for _ in range(3)),
-        np.empty(B),
-        *(np.empty((B, K)) for _ in range(3)),
-        *(np.zeros((B, K), dtype=np.bool_) for _ in range(3)),
+        *(e((B, n, n)), e((B, n, n))),
+        *(e((B, n)), e((B, n)), e((B, n))),
+        e(B),
+        *(e((B, K)), e((B, K)), e((B, K))),
+        *(z((B, K), dtype=np.bool_), z((B, K), dtype=np.bool_), z((B, K), dtype=np.bool_)),
     )
     A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu = out
     sliding = _NONE_SLIDING if sliding is None else sliding
@@ -130,6 +131,18 @@ def _scale_range(
                 r = k * d + i
                 if not active[b, k] or (i > 0 and zero_mu[b, k]):
                     P[b, r, r] += 1.0
+
+
+@njit(cache=True, nogil=True)
+def unscale(gamma, T, z):
+    """(γ·T)⊙z (B, n) for gamma (B,), T, z (B, n): f of the scaled solution z, or γT⊙g for the adjoint's right-hand
+    side (as numpy's ``gamma[:, None] * T * z``, bit for bit, in one compiled call: a µs less at B = 1)."""
+    B, n = z.shape
+    f = np.empty((B, n))
+    for b in range(B):
+        for i in range(n):
+            f[b, i] = gamma[b] * T[b, i] * z[b, i]
+    return f
 
 
 def outside_cones(z, mu, free, d):
