@@ -142,6 +142,35 @@ def test_a_push_along_a_flat_direction_in_the_cone():
     assert torch.allclose(f[2], least, atol=1e-9) and torch.allclose(f[3], least, atol=1e-9)
 
 
+def test_a_set_of_minimisers_that_is_a_point_stops_the_augmented_lagrangian_early(monkeypatch):
+    """A ball in a corner (a point mass, inverse mass 0.94, walls along x and y, μ = 1e-3: a problem met in BP5's
+    training): A = m⁻¹·[[1,0,0,−1],[0,1,1,0],[0,1,1,0],[−1,0,0,1]] has two flat directions, yet the cones admit a
+    single minimiser, f = (0, 0, s, μs) with s = (0.97 + 0.93μ) / (0.94(1 + μ²)) (minimise over u = f₁ₙ − f₂ₜ ≥ −μf₂ₙ
+    and s = f₁ₜ + f₂ₙ).  The augmented Lagrangian's miss then falls sublinearly; it stops once that is clear."""
+    import diffcontact.solver.flat as flat
+
+    solves = []
+    several = flat._least_norm_several
+
+    def counted(idx, x, PiN, solve):
+        def counting(*args):
+            solves.append(1)
+            return solve(*args)
+
+        return several(idx, x, PiN, counting)
+
+    monkeypatch.setattr(flat, "_least_norm_several", counted)
+    mu = 1e-3
+    P = torch.tensor([[1.0, 0, 0, -1], [0, 1, 1, 0], [0, 1, 1, 0], [-1, 0, 0, 1]], dtype=torch.float64)
+    q = torch.tensor([0.93, -0.97, -0.97, -0.93], dtype=torch.float64)
+    mus = torch.full((1, 2), mu, dtype=torch.float64)
+    f, info = solve_cone_qp((0.94 * P)[None], q[None], mus, return_info=True)
+    s = (0.97 + 0.93 * mu) / (0.94 * (1 + mu**2))
+    assert info.status.item() == Status.CONVERGED
+    assert torch.allclose(f[0], torch.tensor([0.0, 0.0, s, mu * s], dtype=torch.float64), rtol=0, atol=1e-9)
+    assert 0 < len(solves) <= 6 < flat.ALM_STEPS  # (20 solves before the stop)
+
+
 def test_genuinely_indefinite_matrix_is_an_input_error():
     A = torch.eye(2, dtype=torch.float64).repeat(3, 1, 1)
     A[1, 1, 1] = -1e-3
