@@ -58,7 +58,9 @@ def _threads(threads: int | None) -> int:
 def bench_solver(
     batch: list[int] = typer.Option([1, 128, 800], "--batch", "-b", help="Batch sizes B."),
     contacts: list[int] = typer.Option([1, 2, 3, 5, 19], "--contacts", "-k", help="Contact counts K."),
-    dims: list[int] = typer.Option([2, 3], "--dim", "-d", help="Contact-space dimensions d."),
+    dims: list[int] = typer.Option(
+        [1, 2, 3], "--dim", "-d", help="Contact-space dimensions d (1: frictionless limits, as the rope's)."
+    ),
     repeats: int = typer.Option(5, help="Timed repetitions of our solver (median reported)."),
     reference: bool = typer.Option(True, help="Also time the cvxpylayers reference (needs the extra)."),
     ref_max_batch: int = typer.Option(

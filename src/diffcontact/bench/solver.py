@@ -42,7 +42,7 @@ def _time_fwd_bwd(solver, A, q, mu, lower, repeats: int) -> tuple[float, float, 
 def run_solver_benchmark(
     batches=(1, 128, 800),
     contacts=(1, 2, 3, 5, 19),
-    dims=(2, 3),
+    dims=(1, 2, 3),
     repeats: int = 5,
     reference: bool = True,
     ref_max_batch: int = 800,
