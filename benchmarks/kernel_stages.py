@@ -31,7 +31,7 @@ def _best(call, B: int, runs: int = 5) -> float:
 def main(K: int = 19, d: int = 3, B: int = 400) -> None:
     A, q, mu, lower = _instances(torch.Generator().manual_seed(0), B, K, d)
     arrays = problem._as_arrays(A, q, mu, lower, None)
-    P, c, l_hat, on_q, on_l = (scaling.scale_batch(*arrays, contact_dims(d))[i] for i in (1, 2, 3, 9, 10))
+    A_sym, c, l_hat, T, on_q, on_l = (scaling.scale_batch(*arrays, contact_dims(d))[i] for i in (0, 1, 2, 3, 8, 9))
     options = dict(
         ipm_tol=problem.IPM_TOL,
         final_tol=problem.ROUNDING_TOL,
@@ -42,7 +42,7 @@ def main(K: int = 19, d: int = 3, B: int = 400) -> None:
     )
 
     def solve(steps: int):
-        return lanes.solve(P, c, l_hat, on_q, on_l, d, **options, polish_steps=steps)
+        return lanes.solve(A_sym, T, c, l_hat, on_q, on_l, d, **options, polish_steps=steps)
 
     ipm = _best(lambda: solve(0), B)
     polish = _best(lambda: solve(problem.POLISH_STEPS), B) - ipm

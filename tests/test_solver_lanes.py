@@ -29,15 +29,29 @@ def _standard_form(K, d, B, seed):
     active = torch.rand(B, K, generator=gen) > 0.2
     active[0] = False  # an element without any contact
     arrays = scaling.scale_batch(A.numpy(), q.numpy(), mu.numpy(), lower.numpy(), active.numpy(), contact_dims(d))
-    _, P, c, l_hat, *_, on_q, on_l, _ = arrays
-    return P, c, l_hat, on_q, on_l
+    A_sym, c, l_hat, T, *_, on_q, on_l, _ = arrays
+    return A_sym, T, c, l_hat, on_q, on_l
 
 
-def _iterates(P, c, l_hat, on_q, on_l, d, trace):
+def _iterates(A, T, c, l_hat, on_q, on_l, d, trace, polish_steps=0):
     """The interior-point iterates alone (to 1e-8, no polishing), as tensors."""
     options = dict(acceptable_tol=1e-7, max_iter=60, start_margin=START_MARGIN, refine_tol=IPM_TOL)
-    res = lanes.solve(P, c, l_hat, on_q, on_l, d, ipm_tol=1e-8, final_tol=1e-8, **options, polish_steps=0, trace=trace)
+    res = lanes.solve(
+        A, T, c, l_hat, on_q, on_l, d, ipm_tol=1e-8, final_tol=1e-8, **options, polish_steps=polish_steps, trace=trace
+    )
     return SimpleNamespace(**{name: torch.from_numpy(getattr(res, name)) for name in res.OUTPUTS})
+
+
+@pytest.mark.parametrize("d,K", [(1, 4), (2, 3), (3, 5)])
+def test_the_kernel_forms_p_by_its_stated_rule(d, K):
+    """P = T·A·T formed in the kernel (with the identity on the rows where T = 0: inactive contacts, which the batch
+    has) solves bit for bit as the same P formed in Python (``lanes.scaled_matrix``) and passed with T = 1."""
+    A, T, *rest = _standard_form(K, d, B=23, seed=5 * d + K)
+    assert (T == 0).any()
+    P = lanes.scaled_matrix(A, T)
+    got, ref = (_iterates(*ab, *rest, d, np.zeros((23, 0, 4)), 3) for ab in ((A, T), (P, np.ones_like(T))))
+    for name in got.__dict__:
+        assert torch.equal(getattr(got, name), getattr(ref, name)), name
 
 
 @pytest.fixture

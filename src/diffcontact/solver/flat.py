@@ -81,9 +81,11 @@ def rows_in_use(mu: torch.Tensor, active: torch.Tensor, d: int) -> torch.Tensor:
     return used
 
 
-def flat_elements(A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float) -> np.ndarray:
+def flat_elements(
+    A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(B,) bool: elements whose A, on its rows in use (``rows_in_use``), has an eigenvalue ≤ tol·ref (module
-    docstring).
+    docstring); and (B,) bool: elements whose A is finite everywhere (the input check, read in the same pass).
 
     A: (B, n, n) float64, symmetrised on the fly (½(A + Aᵀ)); mu: (B, K) float64; active: (B, K) bool.  A Cholesky
     factorisation of A − tol·ref·I per element (its rounding error, ~n·eps·ref, is far below tol·ref), in the

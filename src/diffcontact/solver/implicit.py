@@ -96,7 +96,8 @@ def _adjoint_lstsq(res: IPMResult, g: np.ndarray, sel: np.ndarray) -> tuple[np.n
     """Least-squares adjoint for the selected (degenerate) elements, weakly active cones taken as inactive."""
     d = res.d
     n, K = g.shape[-1], res.on.shape[-1]
-    parts = [np.ascontiguousarray(t[sel]) for t in (res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)]
+    P = lanes.scaled_matrix(np.ascontiguousarray(res.A[sel]), np.ascontiguousarray(res.T[sel]))
+    parts = [P] + [np.ascontiguousarray(t[sel]) for t in (res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)]
     Kmat = exact.kkt_matrix_batch(*parts, contact_dims(d), True)
     rhs = np.zeros(Kmat.shape[:2])
     rhs[:, :n] = g[sel]

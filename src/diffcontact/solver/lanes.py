@@ -45,7 +45,7 @@ class SolveArgs(ctypes.Structure):
     """``struct SolveArgs`` of ``csrc/api.h`` (field by field, the same names; pointers as addresses)."""
 
     _fields_ = [
-        *((name, _ptr) for name in ("P", "c", "lower", "on", "on_l")),
+        *((name, _ptr) for name in ("A", "scale", "c", "lower", "on", "on_l")),
         ("K", _i64),
         ("d", _i64),
         ("idx", _ptr),
@@ -66,7 +66,7 @@ class AdjointArgs(ctypes.Structure):
     """``struct AdjointArgs`` of ``csrc/api.h``."""
 
     _fields_ = [
-        *((name, _ptr) for name in ("P", "s_l", "lam_l", "s_q", "lam_q", "on", "on_l")),
+        *((name, _ptr) for name in ("A", "scale", "s_l", "lam_l", "s_q", "lam_q", "on", "on_l")),
         ("K", _i64),
         ("d", _i64),
         *((name, _ptr) for name in ("g", "u", "v_l", "ok")),
@@ -82,6 +82,7 @@ class FlatArgs(ctypes.Structure):
         ("d", _i64),
         ("tol", _f64),
         ("flat", _ptr),
+        ("finite", _ptr),
     ]
 
 
@@ -95,7 +96,7 @@ class _Constants(ctypes.Structure):
     ]
 
 
-API_VERSION = 3
+API_VERSION = 4
 
 _CODES = {_i64: "q", _f64: "d", _ptr: "Q"}
 
@@ -235,10 +236,11 @@ def _address(a: np.ndarray) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _addresses(a, b, c, d, e, f, g):
-    """The addresses of seven C-contiguous arrays' data (one compiled call: 3× faster than ``_address`` on each;
+def _addresses(a, b, c, d, e, f, g, h):
+    """The addresses of eight C-contiguous arrays' data (one compiled call: 3× faster than ``_address`` on each;
     repeat an array for the slots not needed)."""
-    return a.ctypes.data, b.ctypes.data, c.ctypes.data, d.ctypes.data, e.ctypes.data, f.ctypes.data, g.ctypes.data
+    return (a.ctypes.data, b.ctypes.data, c.ctypes.data, d.ctypes.data, e.ctypes.data, f.ctypes.data, g.ctypes.data,
+            h.ctypes.data)  # fmt: skip
 
 
 class _Output:
@@ -277,15 +279,21 @@ class IPMResult:
 
     OUTPUTS = ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")  # as in ``SolveArgs``
 
-    def __init__(self, P: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int):
-        """Outputs in their initial state for the problems P (B, n, n) (the problem's data, for the backward pass),
-        on (B, K) bool (cones in use) and on_l (B, K) bool (rays in use), of contact dimension d."""
+    def __init__(self, A: np.ndarray, T: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int):
+        """Outputs in their initial state for the problems P = T·A·T (A: (B, n, n) symmetric, T: (B, n); see
+        ``solve``; the problem's data, for the backward pass), on (B, K) bool (cones in use) and on_l (B, K) bool
+        (rays in use), of contact dimension d."""
         B, K = on.shape
-        self.P, self.on, self.on_l, self.d = P, on, on_l, d
+        self.A, self.T, self.on, self.on_l, self.d = A, T, on, on_l, d
         self._slices, initial = _layout(B, K, d)
         self._buffer = initial.copy()  # (8-byte items: the int64 outputs are views of it too)
         base = _address(self._buffer)
         self.addresses = [base + 8 * a for a, _, _ in self._slices]
+
+    @property
+    def P(self) -> np.ndarray:
+        """(B, n, n) the problems' P = T·A·T as the kernel forms it (made on each access)."""
+        return scaled_matrix(self.A, self.T)
 
     def __repr__(self) -> str:
         B, n = self.z.shape
@@ -310,7 +318,8 @@ _NO_TRACE = np.zeros((0, 0, 4))
 
 
 def solve(
-    P: np.ndarray,
+    A: np.ndarray,
+    T: np.ndarray,
     c: np.ndarray,
     lower: np.ndarray,
     on: np.ndarray,
@@ -331,23 +340,25 @@ def solve(
     """Interior-point method to ``ipm_tol``, then (``polish_steps`` > 0) polishing, of the batch elements ``idx``
     (default: all); the options are the fields of ``SolveArgs`` (``csrc/api.h``), under the same names.
 
-    P: (B, n, n), c: (B, n), lower: (B, K) float64; on, on_l: (B, K) bool; idx: (m,) int64 (all C-contiguous).
+    The problems' P = T·A·T is formed in the kernel (``scaled_matrix``): A (B, n, n) symmetric, T (B, n); c: (B, n),
+    lower: (B, K) float64; on, on_l: (B, K) bool; idx: (m,) int64 (all C-contiguous).  A problem written with P
+    itself is solved with A = P and T = 1.
     Writes the rows ``idx`` of ``out`` (default: a new ``IPMResult``) and returns it.  ``trace`` (B, T, 4),
     if given, receives per iteration the primal and dual residuals, the gap and the step taken (for diagnosis).
     """
     B, K = lower.shape
-    out = IPMResult(P, on, on_l, d) if out is None else out
+    out = IPMResult(A, T, on, on_l, d) if out is None else out
     idx = np.arange(B, dtype=np.int64) if idx is None else idx
     if trace is None:
         trace = _NO_TRACE
     elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
         raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
-    addresses = _addresses(P, c, lower, on, on_l, idx, trace)
+    addresses = _addresses(A, T, c, lower, on, on_l, idx, trace)
     args = _pack_solve(
-        *addresses[:5],
+        *addresses[:6],
         K,
         d,
-        addresses[5],
+        addresses[6],
         ipm_tol,
         final_tol,
         acceptable_tol,
@@ -356,7 +367,7 @@ def solve(
         refine_tol,
         polish_steps,
         *out.addresses,
-        addresses[6] if trace.size else 0,
+        addresses[7] if trace.size else 0,
         trace.shape[1],
     )
     parallel(lambda start, stop: _check(_lib.diffcontact_ipm_solve(args, start, stop), K), len(idx))
@@ -371,18 +382,34 @@ def adjoint(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     n = K * res.d
     u, v_l = np.empty((B, n)), np.empty((B, K))
     ok = np.empty(B, dtype=np.bool_)
-    at = _addresses(res.P, res.on, res.on_l, g, u, v_l, ok)
-    args = _pack_adjoint(at[0], *res.addresses[1:5], *at[1:3], K, res.d, *at[3:])
+    at = _addresses(res.A, res.T, res.on, res.on_l, g, u, v_l, ok)
+    args = _pack_adjoint(*at[:2], *res.addresses[1:5], *at[2:4], K, res.d, *at[4:])
     parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(args, start, stop), K), B)
     return u, v_l, ok
 
 
-def flat_test(A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float) -> np.ndarray:
+def flat_test(A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """(B,) bool: where ½(A + Aᵀ) − tol·ref·I on the rows in use is not positive definite (``FlatArgs`` of
-    ``csrc/api.h``; ``flat.flat_elements``).  A: (B, n, n), mu: (B, K) float64; active: (B, K) bool (C-contiguous)."""
+    ``csrc/api.h``; ``flat.flat_elements``), and (B,) bool: where every entry of A is finite (read in the same pass).
+    A: (B, n, n), mu: (B, K) float64; active: (B, K) bool (C-contiguous)."""
     B, K = mu.shape
-    out = np.zeros(B, dtype=np.bool_)
-    at = _addresses(A, mu, active, out, out, out, out)
-    args = _pack_flat(*at[:3], K, d, tol, at[3])
+    flat, finite = np.zeros(B, dtype=np.bool_), np.zeros(B, dtype=np.bool_)
+    at = _addresses(A, mu, active, flat, finite, flat, flat, flat)
+    args = _pack_flat(*at[:3], K, d, tol, *at[3:5])
     parallel(lambda start, stop: _check(_lib.diffcontact_flat_test(args, start, stop), K), B)
-    return out
+    return flat, finite
+
+
+@numba.njit(cache=True, nogil=True)
+def scaled_matrix(A: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """P = T·A·T (B, n, n) of A (B, n, n) and T (B, n), with 1 on the diagonal where T_i = 0 (a row the answer does
+    not depend on: an inactive contact, the tangential rows of a μ = 0 contact), as the kernel forms it."""
+    B, n = T.shape
+    P = np.empty((B, n, n))
+    for b in range(B):
+        for i in range(n):
+            for j in range(n):
+                P[b, i, j] = T[b, i] * A[b, i, j] * T[b, j]
+            if T[b, i] == 0.0:
+                P[b, i, i] += 1.0
+    return P

@@ -124,11 +124,12 @@ def _float64(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray((t.detach() if t.requires_grad else t).numpy(), dtype=np.float64)
 
 
-def _check_values(A, q, mu, lower, active) -> float:
+def _check_values(A, q, mu, lower, active, a_finite=None) -> float:
     """Raise ``ValueError`` naming the batch elements where A, q, mu or lower are not finite or mu, lower < 0
-    (arrays of ``_as_arrays``); returns the largest μ (0 if there is none)."""
-    mu_max = _values_ok(A, q, mu, lower)
-    if mu_max == mu_max:  # (not NaN)
+    (arrays of ``_as_arrays``); returns the largest μ (0 if there is none).  a_finite: (B,) bool, whether each
+    element's A is finite, if known (``flat.flat_elements`` reads it in its pass over A), else A is read here."""
+    mu_max = _values_ok(A if a_finite is None else _NO_MATRIX, q, mu, lower)
+    if mu_max == mu_max and (a_finite is None or np.count_nonzero(a_finite) == len(a_finite)):  # (not NaN)
         return mu_max
     B = len(mu)
     for name, x in (("A", A), ("q", q), ("mu", mu), ("lower", lower)):
@@ -140,6 +141,9 @@ def _check_values(A, q, mu, lower, active) -> float:
     if mu.size and mu.max() > MU_MAX:
         raise ValueError(f"mu must be <= {MU_MAX:g}; larger in batch elements {_first((mu > MU_MAX).any(-1))}")
     raise AssertionError("_values_ok and _check_values disagree")  # (unreachable)
+
+
+_NO_MATRIX = np.zeros((0, 0, 0))  # (A already checked)
 
 
 @njit(cache=True, nogil=True)
@@ -223,10 +227,10 @@ def solve_cone_qp(
         A, q, mu, lower, active = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (A, q, mu, lower, active))
     d = _check_shapes(A, q, mu, lower, active)
     arrays = _as_arrays(A, q, mu, lower, active)
-    mu_max = _check_values(*arrays)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
     opts = (tol, acceptable_tol, max_iter, on_failure)
-    found = flat.flat_elements(arrays[0], arrays[2], arrays[4], d, flat.psd_tol(out_dtype))
+    found, a_finite = flat.flat_elements(arrays[0], arrays[2], arrays[4], d, flat.psd_tol(out_dtype))
+    mu_max = _check_values(*arrays, a_finite)
     if np.count_nonzero(found):  # (rare: the elements with flat directions, in torch)
         lower = torch.from_numpy(arrays[3]) if lower is None else lower
         active = torch.from_numpy(arrays[4])
@@ -310,7 +314,7 @@ def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arr
     with a better (lower) status.  Failed elements (``status.is_failure``) get z = 0.
     """
     A64, q64, mu64, lower64, active64 = _as_arrays(A, q, mu, lower, active) if arrays is None else arrays
-    A64, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = scaling.scale_batch(
+    A64, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = scaling.scale_batch(
         A64, q64, mu64, lower64, active64, contact_dims(d), sliding
     )
     free = None  # ((B, K) bool: contacts with μ ≥ MU_FREE scaled free, checked as such: their cone comes after)
@@ -326,7 +330,7 @@ def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arr
     if tol < IPM_TOL:
         passes.insert(0, dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL)))
     options = dict(acceptable_tol=acceptable_tol, max_iter=max_iter, refine_tol=IPM_TOL, polish_steps=POLISH_STEPS)
-    result = lanes.IPMResult(P, on_q, on_l, d)
+    result = lanes.IPMResult(A64, T, on_q, on_l, d)
     # (the answers also checked in unscaled units: optimality.py)
     check = mu_max > optimality.MU_CHECKED
     elements, start_margin, c_try, l_try, gamma_try = np.arange(len(gamma)), START_MARGIN, c, l_hat, gamma
@@ -352,8 +356,8 @@ def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arr
             c_try, l_try = c * ratio, l_hat * ratio
         if not len(elements):
             continue
-        out = result if attempt == 0 else lanes.IPMResult(P, on_q, on_l, d)
-        _solve_passes(P, c_try, l_try, on_q, on_l, d, elements, passes, options, start_margin, out)
+        out = result if attempt == 0 else lanes.IPMResult(A64, T, on_q, on_l, d)
+        _solve_passes(A64, T, c_try, l_try, on_q, on_l, d, elements, passes, options, start_margin, out)
         if attempt > 0:  # keep the better result
             better = out.status[elements] < result.status[elements]
             if attempt == 2:  # (a wrong usable answer: a usable one with a lower natural residual)
@@ -409,7 +413,7 @@ def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, r
                   lower_scale, capped):  # fmt: skip
     """The last attempt of ``_solve_with_retries``: its elements still at MAX_ITER with some μ > ``MU_CAP`` solved
     with μ capped at ``MU_CAP`` (a scaled problem far better conditioned); an answer replaces theirs (in ``result``
-    and the scaling's T, S, gamma, sigma, lower_scale, result.P, in place) only where it is usable and passes the
+    and the scaling's T, S, gamma, sigma, lower_scale, in place) only where it is usable and passes the
     natural-residual check of the problem with the true μ, and ``capped`` (B, K) marks its contacts beyond the cap.
     (Exact where those contacts stick or separate; a contact sliding at the cap fails the check unless the
     difference is below ``acceptable_tol``.)"""
@@ -417,18 +421,17 @@ def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, r
     if not len(rows):
         return
     data = (A[rows], q[rows], np.minimum(mu[rows], MU_CAP), lower[rows], active[rows])
-    _, P, c, l_hat, T_c, S_c, gamma_c, sigma_c, lower_scale_c, on_q, on_l, _ = scaling.scale_batch(
+    A_c, c, l_hat, T_c, S_c, gamma_c, sigma_c, lower_scale_c, on_q, on_l, _ = scaling.scale_batch(
         *data, contact_dims(d)
     )
-    out = lanes.IPMResult(P, on_q, on_l, d)
-    _solve_passes(P, c, l_hat, on_q, on_l, d, np.arange(len(rows)), passes, options, START_MARGIN, out)
+    out = lanes.IPMResult(A_c, T_c, on_q, on_l, d)
+    _solve_passes(A_c, T_c, c, l_hat, on_q, on_l, d, np.arange(len(rows)), passes, options, START_MARGIN, out)
     natural = _natural(data[0], data[1], mu[rows], data[3], data[4], d, gamma_c, T_c, out.z, np.arange(len(rows)))
     ok = (out.status <= _INACCURATE) & (natural <= acceptable_tol)
     take = rows[ok]
     for name in lanes.IPMResult.OUTPUTS:
         getattr(result, name)[take] = getattr(out, name)[ok]
     for full, part in (
-        (result.P, P),
         (T, T_c),
         (S, S_c),
         (gamma, gamma_c),
@@ -573,11 +576,11 @@ def _frictionless_slide_limit(z, A, q, T, gamma, zero_mu, d):
     return np.ascontiguousarray(np.concatenate([zk[..., :1], zt], -1).reshape(B, n)), speed
 
 
-def _solve_passes(P, c, l_hat, on_q, on_l, d, idx, passes, options, start_margin, out) -> None:
+def _solve_passes(A, T, c, l_hat, on_q, on_l, d, idx, passes, options, start_margin, out) -> None:
     """Solve the elements ``idx`` into ``out``, pass after pass of ``passes`` (their tolerances), each pass only on
     the elements the previous left INACCURATE or MAX_ITER."""
     for tols in passes:
-        lanes.solve(P, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
+        lanes.solve(A, T, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
         status = out.status if len(idx) == len(out.status) else out.status[idx]  # (idx is all of them, or sorted)
         if not np.count_nonzero(status):
             break

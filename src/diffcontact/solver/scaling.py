@@ -11,7 +11,8 @@ Per batch element, with contact k's rows i = k·d … k·d + d − 1:
         tangential factor μ > 1, which made γ overestimate the solution's size by up to μ (and the kernel's test,
         relative to max(1, ‖z‖∞), in effect absolute for the small z that followed: docs/scaling.md);
     P = T A T with T = S·D, plus an identity on inactive rows and on the tangential rows of μ = 0 contacts (which
-        have no cone: only the ray z_n ≥ lower remains, their z_t is pinned to 0);
+        have no cone: only the ray z_n ≥ lower remains, their z_t is pinned to 0), i.e. on the rows where T = 0;
+        formed by the kernel as it gathers a group's problems (``lanes.scaled_matrix``), not here;
     contacts with μ ≥ ``MU_FREE`` have D = 1 and no cone, only the ray z_n ≥ l̂, and a free z_t ("free"): with
         a tangential factor μ ≥ 1e4 the unit cone's z_t = f_t/(γσμ) is below the kernel's resolution next to z_n
         for a contact that sticks (its test is relative to ‖z‖∞), and such problems ended at the iteration limit
@@ -43,40 +44,54 @@ def scale_batch(A, q, mu, lower, active, dims, sliding=None):
     """A: (B, n, n); q: (B, n); mu, lower: (B, K) float64; active: (B, K) bool; dims: tuple of length d; sliding:
     (B, K) bool or None, contacts with μ ≥ ``MU_FREE`` to scale for sliding (their cone kept) rather than free.
 
-    Returns (A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu): A_sym = ½(A + Aᵀ)
-    (B, n, n); P (B, n, n); c, T, S = ∂T/∂μ (B, n); gamma (B,); sigma, l_hat, lower_scale = ∂l̂/∂lower (B, K);
-    on_q (cones used), on_l (rays used), zero_mu (B, K) bool.  Run on the solver's threads (``lanes.parallel``).
+    Returns (A_sym, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu): A_sym = ½(A + Aᵀ)
+    (B, n, n; A itself if symmetric); c, T, S = ∂T/∂μ (B, n); gamma (B,); sigma, l_hat, lower_scale = ∂l̂/∂lower
+    (B, K); on_q (cones used), on_l (rays used), zero_mu (B, K) bool.  P = T·A_sym·T (plus the identity on the rows
+    where T is 0) is formed by the kernel (``lanes.scaled_matrix``).  Run on the solver's threads (``lanes.parallel``).
     """
     B, K = mu.shape
     n = K * len(dims)
+    if _symmetric(A):
+        A_sym = A
+    else:
+        A_sym = A + A.swapaxes(1, 2)
+        A_sym *= 0.5
     e, z = np.empty, np.zeros  # (spelled out: generator expressions cost 2 µs more, a tenth of a small call)
     out = (
-        *(e((B, n, n)), e((B, n, n))),
         *(e((B, n)), e((B, n)), e((B, n))),
         e(B),
         *(e((B, K)), e((B, K)), e((B, K))),
         *(z((B, K), dtype=np.bool_), z((B, K), dtype=np.bool_), z((B, K), dtype=np.bool_)),
     )
-    A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu = out
+    c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu = out
     sliding = _NONE_SLIDING if sliding is None else sliding
-    lanes.parallel(lambda start, stop: _scale_range(A, q, mu, lower, active, sliding, dims, *out, start, stop), B)
-    return A_sym, P, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
+    lanes.parallel(lambda start, stop: _scale_range(A_sym, q, mu, lower, active, sliding, dims, *out, start, stop), B)
+    return A_sym, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
+
+
+@njit(cache=True, nogil=True)
+def _symmetric(A) -> bool:
+    """Whether A (B, n, n) equals its transpose exactly (its symmetric part then needs no copy)."""
+    B, n, _ = A.shape
+    for b in range(B):
+        for i in range(n):
+            for j in range(i):
+                if A[b, i, j] != A[b, j, i]:
+                    return False
+    return True
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _scale_range(
-    A, q, mu, lower, active, sliding, dims, A_sym, P, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu,
-    start, stop,
+    A_sym, q, mu, lower, active, sliding, dims, c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu, start,
+    stop,
 ):  # fmt: skip
-    """scale_batch for the batch elements start … stop − 1, into the given outputs."""
+    """scale_batch for the batch elements start … stop − 1 (A_sym: the symmetric A), into the given outputs."""
     d = len(dims)
     K = mu.shape[1]
     n = K * d
     for b in range(start, stop):
         As = A_sym[b]
-        for i in range(n):
-            for j in range(n):
-                As[i, j] = 0.5 * (A[b, i, j] + A[b, j, i])
         a_max = -np.inf
         for k in range(K):
             a_max = max(a_max, As[k * d, k * d] if active[b, k] else 0.0)
@@ -124,13 +139,6 @@ def _scale_range(
                 on_l[b, k] = on
         for i in range(n):
             c[b, i] = T[b, i] * q[b, i] / g
-            for j in range(n):
-                P[b, i, j] = T[b, i] * As[i, j] * T[b, j]
-        for k in range(K):
-            for i in range(d):
-                r = k * d + i
-                if not active[b, k] or (i > 0 and zero_mu[b, k]):
-                    P[b, r, r] += 1.0
 
 
 @njit(cache=True, nogil=True)

@@ -25,13 +25,16 @@ enum { FIRST_FAILURE = MAX_ITER };
 // stick/slip or touch/separate switch): polishing and the backward pass may take it as inactive.
 #define WEAK_TOL 1e-6
 // Version of this interface: raise it with any change of the structs or the entry points.
-enum { API_VERSION = 3 };
+enum { API_VERSION = 4 };
 
 // diffcontact_ipm_solve: the interior-point method to ipm_tol, then (polish_steps > 0) polishing, of the batch
 // elements idx[start..stop) of B problems in the standard form of lanes.py (K contacts of dimension d, n = K·d;
-// arrays C-contiguous, row-major).  Writes the rows idx[start..stop) of the outputs.
+// arrays C-contiguous, row-major).  Writes the rows idx[start..stop) of the outputs.  P = T·A·T is formed per group
+// as it is gathered (P_ij = T_i·A_ij·T_j, plus 1 on the diagonal where T_i = 0: a row the answer does not depend on;
+// T in `scale`).
 struct SolveArgs {
-  const double* P;           // (B, n, n)
+  const double* A;           // (B, n, n) symmetric
+  const double* scale;       // (B, n) T
   const double* c;           // (B, n)
   const double* lower;       // (B, K)
   const unsigned char* on;   // (B, K) cones in use
@@ -60,7 +63,8 @@ struct SolveArgs {
 // diffcontact_adjoint_solve: Kᵀ[u; v] = [g; 0] (implicit.py) of the elements start … stop − 1, the weakly active
 // cones of singular elements taken as inactive.
 struct AdjointArgs {
-  const double* P;           // (B, n, n)
+  const double* A;           // (B, n, n): P = T·A·T as SolveArgs
+  const double* scale;       // (B, n) T
   const double* s_l;         // (B, K) the solution: as SolveArgs
   const double* lam_l;       // (B, K)
   const double* s_q;         // (B, K, d)
@@ -77,14 +81,15 @@ struct AdjointArgs {
 // diffcontact_flat_test: for the elements start … stop − 1, whether ½(A + Aᵀ) on the rows in use (active contacts,
 // without the tangential rows of μ = 0 contacts) minus tol·ref·I is not positive definite (its Cholesky factorisation
 // fails), ref its largest diagonal entry on those rows; an element with ref ≤ 0 is flat, one without rows in use not
-// (flat.py, flat_elements).
+// (flat.py, flat_elements).  Also whether all of A's entries are finite (the input check, in the same pass over A).
 struct FlatArgs {
   const double* A;               // (B, n, n)
   const double* mu;              // (B, K)
   const unsigned char* active;   // (B, K)
   i64 K, d;
   double tol;
-  unsigned char* flat;           // (B,) output: 1 where flat
+  unsigned char* flat;           // (B,) outputs: 1 where flat,
+  unsigned char* finite;         // (B,) 1 where every entry of A is finite
 };
 
 // What lanes.py checks on loading.

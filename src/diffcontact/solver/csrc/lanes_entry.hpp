@@ -9,13 +9,25 @@ namespace NS {
 
 int lanes() { return LANES; }
 
+// P = T·A·T of the group's elements (api.h), c, the cones and rays in use and the rays' bounds (as −low in h_l).
 template <int D>
-static void gather_problem(Work<D>& w, const i64* b, const double* P, const double* c, const double* low,
-                           const unsigned char* on, const unsigned char* onl) {
+static void gather_problem(Work<D>& w, const i64* b, const double* A, const double* T, const double* c,
+                           const double* low, const unsigned char* on, const unsigned char* onl) {
   const int K = w.K;
   const i64 n = w.n;
-  for (i64 i = 0; i < n * n; i++)
-    for (int l = 0; l < LANES; l++) w.P[i][l] = P[b[l] * n * n + i];
+  const double *Al[LANES], *Tl[LANES];
+  for (int l = 0; l < LANES; l++) Al[l] = A + b[l] * n * n, Tl[l] = T + b[l] * n;
+  for (i64 i = 0; i < n; i++) {
+    V ti;
+    for (int l = 0; l < LANES; l++) ti[l] = Tl[l][i];
+    V* Pi = w.P + i * n;
+    for (i64 j = 0; j < n; j++) {
+      V a, tj;
+      for (int l = 0; l < LANES; l++) a[l] = Al[l][i * n + j], tj[l] = Tl[l][j];
+      Pi[j] = ti * a * tj;
+    }
+    Pi[i] = sel(ti == 0.0, Pi[i] + 1.0, Pi[i]);
+  }
   for (i64 i = 0; i < n; i++)
     for (int l = 0; l < LANES; l++) w.c[i][l] = c ? c[b[l] * n + i] : 0.0;
   for (int k = 0; k < K; k++)
@@ -54,7 +66,7 @@ static int solve_indices(const SolveArgs& a, i64 start, i64 stop) {
   const int K = (int)a.K;
   const i64 n = (i64)K * D, T = a.T;
   return for_groups<D>(K, a.idx, start, stop, [&](Work<D>& w, Exact<D>& e, const i64* b, int valid) {
-    gather_problem(w, b, a.P, a.c, a.lower, a.on, a.on_l);
+    gather_problem(w, b, a.A, a.scale, a.c, a.lower, a.on, a.on_l);
     double* tr[LANES];
     for (int l = 0; l < LANES; l++) tr[l] = (T > 0 && l < valid) ? a.trace + b[l] * T * 4 : nullptr;
     i64 st[LANES], it[LANES];
@@ -94,7 +106,7 @@ static int adjoint_range(const AdjointArgs& a, i64 start, i64 stop) {
   const int K = (int)a.K;
   const i64 n = (i64)K * D;
   return for_groups<D>(K, nullptr, start, stop, [&](Work<D>& w, Exact<D>& e, const i64* b, int valid) {
-    gather_problem(w, b, a.P, nullptr, nullptr, a.on, a.on_l);
+    gather_problem(w, b, a.A, a.scale, nullptr, nullptr, a.on, a.on_l);
     for (i64 i = 0; i < n; i++)
       for (int l = 0; l < LANES; l++) {
         w.sqb[i][l] = a.s_q[b[l] * n + i];
@@ -133,8 +145,11 @@ static int flat_range(const FlatArgs& a, i64 start, i64 stop) {
         w.onl[k][l] = a.active[b[l] * K + k] ? -1 : 0;
         w.on[k][l] = a.mu[b[l] * K + k] != 0.0 ? -1 : 0;
       }
-    for (i64 i = 0; i < (i64)n * n; i++)
+    V nonfinite = splat(0.0);  // (x·0 is 0 for finite x, NaN for ±inf and NaN)
+    for (i64 i = 0; i < (i64)n * n; i++) {
       for (int l = 0; l < LANES; l++) w.P[i][l] = a.A[b[l] * n * n + i];
+      nonfinite += w.P[i] * 0.0;
+    }
     M* used = (M*)w.rhs;  // (n vectors of scratch)
     for (int i = 0; i < n; i++) used[i] = i % D == 0 ? w.onl[i / D] : w.onl[i / D] & w.on[i / D];
     V ref = splat(0.0);
@@ -151,7 +166,7 @@ static int flat_range(const FlatArgs& a, i64 start, i64 stop) {
     }
     M ok = cholesky(n, Dense{w.P, n}, w.L);
     M flat = any_used & (~ok | (ref <= 0.0));
-    for (int l = 0; l < valid; l++) a.flat[b[l]] = flat[l] ? 1 : 0;
+    for (int l = 0; l < valid; l++) a.flat[b[l]] = flat[l] ? 1 : 0, a.finite[b[l]] = nonfinite[l] == 0.0 ? 1 : 0;
   });
 }
 
