@@ -128,12 +128,14 @@ def _check_values(A, q, mu, lower, active, a_finite=None) -> float:
     """Raise ``ValueError`` naming the batch elements where A, q, mu or lower are not finite or mu, lower < 0
     (arrays of ``_as_arrays``); returns the largest μ (0 if there is none).  a_finite: (B,) bool, whether each
     element's A is finite, if known (``flat.flat_elements`` reads it in its pass over A), else A is read here."""
-    mu_max = _values_ok(A if a_finite is None else _NO_MATRIX, q, mu, lower)
-    if mu_max == mu_max and (a_finite is None or np.count_nonzero(a_finite) == len(a_finite)):  # (not NaN)
+    mu_max = (
+        _values_ok(A, q, mu, lower, _NOTHING) if a_finite is None else _values_ok(_NO_MATRIX, q, mu, lower, a_finite)
+    )
+    if mu_max == mu_max:  # (not NaN)
         return mu_max
     B = len(mu)
     for name, x in (("A", A), ("q", q), ("mu", mu), ("lower", lower)):
-        bad = ~np.isfinite(x).reshape(B, -1).all(-1)
+        bad = ~a_finite if name == "A" and a_finite is not None else ~np.isfinite(x).reshape(B, -1).all(-1)
         if bad.any():
             raise ValueError(f"{name} has non-finite values in batch elements {_first(bad)}")
         if name in ("mu", "lower") and (x < 0).any():
@@ -143,13 +145,13 @@ def _check_values(A, q, mu, lower, active, a_finite=None) -> float:
     raise AssertionError("_values_ok and _check_values disagree")  # (unreachable)
 
 
-_NO_MATRIX = np.zeros((0, 0, 0))  # (A already checked)
+_NO_MATRIX, _NOTHING = np.zeros((0, 0, 0)), np.zeros(0, dtype=np.bool_)  # (A checked by its flags a_finite, or not)
 
 
 @njit(cache=True, nogil=True)
-def _values_ok(A, q, mu, lower):
-    """The largest μ (0 if there is none) if A, q, mu, lower are finite and 0 ≤ mu ≤ ``MU_MAX``, lower ≥ 0, else NaN
-    (one pass, no temporaries)."""
+def _values_ok(A, q, mu, lower, a_finite):
+    """The largest μ (0 if there is none) if A, q, mu, lower are finite, a_finite ((B,) bool, or empty) all True,
+    0 ≤ mu ≤ ``MU_MAX`` and lower ≥ 0, else NaN (one pass, no temporaries)."""
     a = A.ravel()
     s0 = s1 = s2 = s3 = 0.0  # (four independent sums: four times the throughput of one)
     for i in range(0, len(a) - 3, 4):
@@ -162,6 +164,8 @@ def _values_ok(A, q, mu, lower):
         total += x * 0.0
     for x in q.flat:
         total += x * 0.0
+    for x in a_finite:
+        total += 0.0 if x else np.nan
     mu_max = 0.0
     for x in mu.flat:
         total += x * 0.0 if 0 <= x <= MU_MAX else np.nan
