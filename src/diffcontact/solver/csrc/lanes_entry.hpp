@@ -145,11 +145,11 @@ static int flat_range(const FlatArgs& a, i64 start, i64 stop) {
         w.onl[k][l] = a.active[b[l] * K + k] ? -1 : 0;
         w.on[k][l] = a.mu[b[l] * K + k] != 0.0 ? -1 : 0;
       }
-    V nonfinite = splat(0.0);  // (x·0 is 0 for finite x, NaN for ±inf and NaN)
-    for (i64 i = 0; i < (i64)n * n; i++) {
+    for (i64 i = 0; i < (i64)n * n; i++)
       for (int l = 0; l < LANES; l++) w.P[i][l] = a.A[b[l] * n * n + i];
-      nonfinite += w.P[i] * 0.0;
-    }
+    V nf[4] = {};  // (x·0 is 0 for finite x, NaN for ±inf and NaN; four independent sums)
+    for (i64 i = 0; i < (i64)n * n; i++) nf[i % 4] += w.P[i] * 0.0;
+    const V nonfinite = (nf[0] + nf[1]) + (nf[2] + nf[3]);
     M* used = (M*)w.rhs;  // (n vectors of scratch)
     for (int i = 0; i < n; i++) used[i] = i % D == 0 ? w.onl[i / D] : w.onl[i / D] & w.on[i / D];
     V ref = splat(0.0);
