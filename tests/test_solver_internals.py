@@ -30,7 +30,7 @@ def test_reduced_adjoint_solve_matches_dense(d):
     n = K * d
     N = n + K + K * d
     g = np.random.default_rng(d).standard_normal((B, n))
-    arrays = [res.P, res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l]
+    arrays = [lanes.scaled_matrix(res.A, res.T), res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l]
     u, v_l, ok = lanes.adjoint(res, g)
     checked = 0
     for b in range(B):

@@ -290,11 +290,6 @@ class IPMResult:
         base = _address(self._buffer)
         self.addresses = [base + 8 * a for a, _, _ in self._slices]
 
-    @property
-    def P(self) -> np.ndarray:
-        """(B, n, n) the problems' P = T·A·T as the kernel forms it (made on each access)."""
-        return scaled_matrix(self.A, self.T)
-
     def __repr__(self) -> str:
         B, n = self.z.shape
         return f"IPMResult(B={B}, n={n}, status={self.status!r})"
