@@ -7,6 +7,9 @@ alternating runs of this script (docs/solver.md, "Speed").
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import sys
 import time
 

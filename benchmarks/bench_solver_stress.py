@@ -31,6 +31,9 @@ documented refusals (ValueError, TypeError, IndefiniteMatrixError).
 
 from __future__ import annotations
 
+import diffcontact  # (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 import collections
 import os
@@ -40,7 +43,6 @@ import time
 import numpy as np
 import torch
 
-import diffcontact
 from diffcontact.errors import IndefiniteMatrixError
 from diffcontact.solver import Status, solve_cone_qp
 

@@ -18,6 +18,9 @@ impact (TOI, contacts at their time of impact; see docs/gradients.md). Printed a
 
 from __future__ import annotations
 
+import diffcontact  # (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 import json
 import os
@@ -29,7 +32,6 @@ from pathlib import Path
 
 import torch
 
-import diffcontact
 from diffcontact.simulator import simulator_for
 from diffcontact.systems import BENCHMARK_TASKS, build_task
 

@@ -14,6 +14,9 @@ CMr model, an error no training can remove.  With ``--runs`` the trained models'
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 import json
 from pathlib import Path

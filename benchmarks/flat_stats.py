@@ -9,6 +9,9 @@ the solver statuses, and how many flat problems have q's flat part ‖Π_N q‖/
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 import json
 from pathlib import Path

@@ -8,6 +8,9 @@ machine compare two checkouts by alternating runs of this script (docs/solver.md
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import sys
 import time
 

@@ -13,6 +13,9 @@ beside the PNG with every value.
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 import json
 import time

@@ -12,6 +12,9 @@ chunks with and without a contact at the truth.
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 import json
 import sys

@@ -10,6 +10,9 @@ collision of ``--slot``, with every property as learned except that slot's μ, s
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 import json
 import sys

@@ -10,6 +10,9 @@ why BD5's high-friction slots stopped short).
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 import json
 from pathlib import Path

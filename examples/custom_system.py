@@ -11,12 +11,14 @@ which are exactly what ``diffcontact simulate | generate | train | evaluate ./bo
 
 from __future__ import annotations
 
+import diffcontact as dc  # (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
 import argparse
 from pathlib import Path
 
 import torch
 
-import diffcontact as dc
 from diffcontact.data.generate import generate_dataset
 from diffcontact.train.run import train_run
 

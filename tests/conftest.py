@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (before torch: it sets OpenMP's wait policy, read when torch loads)
+
+# isort: split
 import pytest
 import torch
 

@@ -97,7 +97,7 @@ def test_bad_environment_variable_is_named(monkeypatch, restore_width):
 def test_bad_environment_variable_does_not_break_the_import():
     """The width is chosen on first use: the import succeeds and the first solve names the variable."""
     code = (
-        "import torch, diffcontact\n"
+        "import diffcontact, torch\n"
         "try:\n"
         "    diffcontact.solve_cone_qp(torch.eye(2)[None], -torch.ones(1, 2), torch.ones(1, 1))\n"
         "except ValueError as e:\n"

@@ -25,6 +25,7 @@ from diffcontact.threads import (
     default_jobs,
     quiet_waiting_env,
     set_threads,
+    spin_warning,
     thread_env,
 )
 
@@ -105,6 +106,30 @@ def test_passive_waiting_is_set_before_torch_is_imported():
     env["OMP_WAIT_POLICY"] = "ACTIVE"  # (the user's choice wins)
     out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "ACTIVE"
+
+
+def test_spin_warning_names_the_cause_and_the_fix():
+    class FakeTorch:
+        def __init__(self, threads):
+            self.get_num_threads = lambda: threads
+
+    msg = spin_warning({}, {"torch": FakeTorch(2)})
+    assert "imported before diffcontact" in msg and "OMP_WAIT_POLICY=PASSIVE" in msg
+    assert spin_warning({}, {}) is None  # torch not loaded yet: the policy is set in time
+    assert spin_warning({"OMP_WAIT_POLICY": "ACTIVE"}, {"torch": FakeTorch(2)}) is None  # the user's choice
+    assert spin_warning({}, {"torch": FakeTorch(1)}) is None  # one thread: no worker to spin
+
+
+def test_importing_torch_first_warns_once_and_diffcontact_first_does_not():
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "KMP_BLOCKTIME", "OMP_NUM_THREADS")}
+    env["OMP_NUM_THREADS"] = "2"
+    runs = {
+        order: subprocess.run([sys.executable, "-c", order], env=env, capture_output=True, text=True, check=True)
+        for order in ("import torch; import diffcontact", "import diffcontact; import torch")
+    }
+    warned = runs["import torch; import diffcontact"].stderr
+    assert warned.count("RuntimeWarning: torch was imported before diffcontact") == 1, warned
+    assert "RuntimeWarning" not in runs["import diffcontact; import torch"].stderr
 
 
 def test_set_threads_reaches_torch_numba_and_the_solver_pool(restore_threads):

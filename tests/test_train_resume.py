@@ -98,7 +98,7 @@ def test_a_run_killed_by_sigkill_resumes_to_the_same_end(data_root, whole, tmp_p
 
     run = tmp_path / "killed"
     code = (
-        "import torch\nfrom diffcontact.train.module import ContactLightningModule\n"
+        "from diffcontact.train.module import ContactLightningModule\nimport torch\n"
         f"from diffcontact.train.run import train_run\n{WARM_UP}\n"
         f"train_run('BP1', out={str(run)!r}, data_root={str(data_root)!r}, progress=False, **{SETTINGS!r})\n"
     )

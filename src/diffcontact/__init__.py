@@ -1,7 +1,11 @@
 """diffcontact: learn the dynamics of colliding rigid bodies with a differentiable contact model."""
 
-from diffcontact.threads import quiet_waiting_env
+import warnings
 
+from diffcontact.threads import quiet_waiting_env, spin_warning
+
+if _spinning := spin_warning():  # (torch loaded first: too late for the setting below)
+    warnings.warn(_spinning, RuntimeWarning, stacklevel=2)
 quiet_waiting_env()  # before torch loads its OpenMP runtime, which reads these once (diffcontact.threads)
 
 # ruff: noqa: E402 (the imports below must come after the call above)

@@ -8,7 +8,7 @@
   OpenMP workers sleep instead of spinning between parallel regions (spinning workers made a training step 30×
   slower beside two busy processes).  The OpenMP runtime reads them when it is loaded, i.e. at ``import torch``:
   ``diffcontact/__init__.py`` calls it before importing torch.  A program that imports torch before diffcontact
-  must set them itself.
+  must set them itself: :func:`spin_warning` says so when it did not.
 
 This module imports neither torch nor numba at import time (it runs before them).
 """
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from collections.abc import MutableMapping
 from pathlib import Path
 
@@ -31,6 +32,24 @@ def quiet_waiting_env(environ: MutableMapping[str, str] | None = None) -> dict[s
     added = {k: v for k, v in QUIET_ENV.items() if k not in environ}
     environ.update(added)
     return added
+
+
+def spin_warning(environ: MutableMapping[str, str] | None = None, modules: dict | None = None) -> str | None:
+    """The warning for a process that loaded torch before ``import diffcontact`` without choosing a wait policy, with
+    torch using more than one thread: its OpenMP runtime read ``OMP_WAIT_POLICY`` when torch loaded, found none, and
+    its workers spin while they wait (beside the solver's threads, and beside other processes on a shared machine).
+    None otherwise.  ``environ``, ``modules``: default ``os.environ``, ``sys.modules``."""
+    environ = os.environ if environ is None else environ
+    torch = (sys.modules if modules is None else modules).get("torch")
+    threads = getattr(torch, "get_num_threads", None)
+    if threads is None or "OMP_WAIT_POLICY" in environ or threads() <= 1:
+        return None
+    return (
+        "torch was imported before diffcontact, so its OpenMP threads spin while they wait (OMP_WAIT_POLICY is read "
+        "once, when torch loads): the contact solver ran 1.1-1.5x slower beside them on an idle 2-core machine, and a "
+        "training step can be many times slower on a shared one. Import diffcontact before torch, or start Python "
+        "with OMP_WAIT_POLICY=PASSIVE set (OMP_WAIT_POLICY=ACTIVE keeps the spinning and silences this warning)."
+    )
 
 
 def cgroup_cpu_limit(v2: Path = CGROUP_V2, v1: Path = CGROUP_V1) -> float | None:
