@@ -127,14 +127,15 @@ def test_without_gradients_the_same_solution(dtype):
 def test_flat_test_against_eigenvalues(d, K):
     """``flat.flat_elements`` (Cholesky on the rows in use, A symmetrised on the fly; in the kernel, by panels of 8
     columns) against the eigenvalues of the symmetrised A on the rows of ``flat.rows_in_use``, at every lane width
-    this CPU runs (B not a multiple of any)."""
+    this CPU runs (B not a multiple of any); and its flags of finite and of exactly symmetric matrices."""
     gen = torch.Generator().manual_seed(50 + d + K)
     B, tol = 41, 1e-6
     A, q, mu, lower = random_instance(gen, B, K, d)
     rank = max(1, K * d - 3) if K <= 3 else K * d // 3  # singular (flat on most row sets)
     A[: B // 2] = random_instance(gen, B // 2, K, d, rank=rank)[0]
     skew = torch.randn(B, K * d, K * d, generator=gen, dtype=torch.float64)
-    A = A + 0.1 * (skew - skew.mT)  # not symmetric; its symmetric part is the A above
+    odd = (torch.arange(B) % 2 == 1)[:, None, None]
+    A = torch.where(odd, A + 0.1 * (skew - skew.mT), 0.5 * (A + A.mT))  # odd: not symmetric (symmetric part as above)
     active = torch.rand(B, K, generator=gen) > 0.2
     used = flat.rows_in_use(mu, active, d).numpy()
     sym = 0.5 * (A + A.mT).numpy()
@@ -149,7 +150,10 @@ def test_flat_test_against_eigenvalues(d, K):
     try:
         for w in lanes.supported_widths():
             lanes.select_width(w)
-            got = flat.flat_elements(np.ascontiguousarray(A.numpy()), mu.numpy(), active.numpy(), d, tol)[0]
+            got, finite, symmetric = flat.flat_elements(
+                np.ascontiguousarray(A.numpy()), mu.numpy(), active.numpy(), d, tol
+            )
             assert (got == expected).all(), f"lane width {w}"
+            assert finite.all() and (symmetric == ~odd.flatten().numpy()).all(), f"lane width {w}"
     finally:
         lanes.select_width(width)

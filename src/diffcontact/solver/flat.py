@@ -83,9 +83,10 @@ def rows_in_use(mu: torch.Tensor, active: torch.Tensor, d: int) -> torch.Tensor:
 
 def flat_elements(
     A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(B,) bool: elements whose A, on its rows in use (``rows_in_use``), has an eigenvalue ≤ tol·ref (module
-    docstring); and (B,) bool: elements whose A is finite everywhere (the input check, read in the same pass).
+    docstring); read in the same pass, (B,) bool: elements whose A is finite everywhere (the input check) and (B,)
+    bool: elements whose A equals its transpose exactly (``scaling.scale_batch``).
 
     A: (B, n, n) float64, symmetrised on the fly (½(A + Aᵀ)); mu: (B, K) float64; active: (B, K) bool.  A Cholesky
     factorisation of A − tol·ref·I per element (its rounding error, ~n·eps·ref, is far below tol·ref), in the

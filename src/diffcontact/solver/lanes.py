@@ -83,6 +83,7 @@ class FlatArgs(ctypes.Structure):
         ("tol", _f64),
         ("flat", _ptr),
         ("finite", _ptr),
+        ("symmetric", _ptr),
     ]
 
 
@@ -96,7 +97,7 @@ class _Constants(ctypes.Structure):
     ]
 
 
-API_VERSION = 4
+API_VERSION = 5
 
 _CODES = {_i64: "q", _f64: "d", _ptr: "Q"}
 
@@ -383,16 +384,20 @@ def adjoint(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     return u, v_l, ok
 
 
-def flat_test(A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
+def flat_test(
+    A: np.ndarray, mu: np.ndarray, active: np.ndarray, d: int, tol: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(B,) bool: where ½(A + Aᵀ) − tol·ref·I on the rows in use is not positive definite (``FlatArgs`` of
-    ``csrc/api.h``; ``flat.flat_elements``), and (B,) bool: where every entry of A is finite (read in the same pass).
-    A: (B, n, n), mu: (B, K) float64; active: (B, K) bool (C-contiguous)."""
+    ``csrc/api.h``; ``flat.flat_elements``); read in the same pass, (B,) bool: where every entry of A is finite, and
+    (B,) bool: where A equals its transpose exactly.  A: (B, n, n), mu: (B, K) float64; active: (B, K) bool
+    (C-contiguous)."""
     B, K = mu.shape
-    flat, finite = np.zeros(B, dtype=np.bool_), np.zeros(B, dtype=np.bool_)
-    at = _addresses(A, mu, active, flat, finite, flat, flat, flat)
-    args = _pack_flat(*at[:3], K, d, tol, *at[3:5])
+    flags = np.zeros((3, B), dtype=np.bool_)
+    flat, finite, symmetric = flags[0], flags[1], flags[2]
+    at = _addresses(A, mu, active, flat, finite, symmetric, flat, flat)
+    args = _pack_flat(*at[:3], K, d, tol, *at[3:6])
     parallel(lambda start, stop: _check(_lib.diffcontact_flat_test(args, start, stop), K), B)
-    return flat, finite
+    return flat, finite, symmetric
 
 
 @numba.njit(cache=True, nogil=True)

@@ -233,7 +233,7 @@ def solve_cone_qp(
     arrays = _as_arrays(A, q, mu, lower, active)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
     opts = (tol, acceptable_tol, max_iter, on_failure)
-    found, a_finite = flat.flat_elements(arrays[0], arrays[2], arrays[4], d, flat.psd_tol(out_dtype))
+    found, a_finite, symmetric = flat.flat_elements(arrays[0], arrays[2], arrays[4], d, flat.psd_tol(out_dtype))
     mu_max = _check_values(*arrays, a_finite)
     if np.count_nonzero(found):  # (rare: the elements with flat directions, in torch)
         lower = torch.from_numpy(arrays[3]) if lower is None else lower
@@ -244,7 +244,9 @@ def solve_cone_qp(
         else:
             f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
     else:
-        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts, arrays=arrays, mu_max=mu_max)
+        f, result = _solve_with_retries(
+            A, q, mu, lower, active, d, *opts, arrays=arrays, mu_max=mu_max, symmetric=symmetric
+        )
     if f.dtype != out_dtype or device.type != "cpu":
         f = f.to(device=device, dtype=out_dtype)
     if return_info:
@@ -254,12 +256,14 @@ def solve_cone_qp(
 
 
 def _solve_with_retries(
-    A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure, arrays=None, mu_max=None
+    A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure, arrays=None, mu_max=None, symmetric=None
 ):
     """``_solve_scaled``, then ``_solve_sliding`` where a contact with μ ≥ ``scaling.MU_FREE`` slides, and the failure
     policy (``on_failure``); returns (f, result) as ``_solve_scaled``."""
     opts = (tol, acceptable_tol, max_iter)
-    f, result, outside = _solve_scaled(A, q, mu, lower, active, d, *opts, arrays=arrays, mu_max=mu_max)
+    f, result, outside = _solve_scaled(
+        A, q, mu, lower, active, d, *opts, arrays=arrays, mu_max=mu_max, symmetric=symmetric
+    )
     if outside is not None and outside.any():
         f = _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result)
     _raise_on_failure(result.status, on_failure)
@@ -288,13 +292,16 @@ def _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result):
     return f.index_copy(0, r, again.to(f.dtype))
 
 
-def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays=None, mu_max=None, sliding=None):
+def _solve_scaled(
+    A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays=None, mu_max=None, sliding=None, symmetric=None
+):
     """Solve the batch (checked tensors of ``solve_cone_qp``; lower, active may be None) with the retry policy
     below; returns (f (B, n) float64, differentiable (``ImplicitConeQP``) where an input requires a gradient, the
     kernel's ``IPMResult``, and (B, K) bool: the contacts scaled free whose answer leaves their cone, or None).
     arrays: ``_as_arrays`` of the tensors if made already; the solver works on them, the tensors are only the ends
     of the autograd graph; mu_max: the largest μ if known (``_check_values``).  sliding: (B, K) bool, contacts with
-    μ ≥ ``scaling.MU_FREE`` scaled for sliding, or None.
+    μ ≥ ``scaling.MU_FREE`` scaled for sliding, or None.  symmetric: (B,) bool, where A equals its transpose exactly,
+    if known (``flat.flat_elements``: with ``arrays``).
 
     The data are scaled once (f = γ·S·D·z, ``scaling.py``); every attempt then runs the compiled interior-point
     method with polishing (``lanes.solve``) on some elements, in up to two passes:
@@ -319,7 +326,7 @@ def _solve_scaled(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arr
     """
     A64, q64, mu64, lower64, active64 = _as_arrays(A, q, mu, lower, active) if arrays is None else arrays
     A64, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = scaling.scale_batch(
-        A64, q64, mu64, lower64, active64, contact_dims(d), sliding
+        A64, q64, mu64, lower64, active64, contact_dims(d), sliding, symmetric
     )
     free = None  # ((B, K) bool: contacts with μ ≥ MU_FREE scaled free, checked as such: their cone comes after)
     mu_check = mu64

@@ -40,9 +40,10 @@ MU_FREE = 1e4
 _NONE_SLIDING = np.zeros((0, 0), dtype=np.bool_)  # (no contact scaled for sliding: nothing allocated)
 
 
-def scale_batch(A, q, mu, lower, active, dims, sliding=None):
+def scale_batch(A, q, mu, lower, active, dims, sliding=None, symmetric=None):
     """A: (B, n, n); q: (B, n); mu, lower: (B, K) float64; active: (B, K) bool; dims: tuple of length d; sliding:
-    (B, K) bool or None, contacts with μ ≥ ``MU_FREE`` to scale for sliding (their cone kept) rather than free.
+    (B, K) bool or None, contacts with μ ≥ ``MU_FREE`` to scale for sliding (their cone kept) rather than free;
+    symmetric: (B,) bool, where A equals its transpose exactly, if known (``flat.flat_elements``), else A is read here.
 
     Returns (A_sym, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu): A_sym = ½(A + Aᵀ)
     (B, n, n; A itself if symmetric); c, T, S = ∂T/∂μ (B, n); gamma (B,); sigma, l_hat, lower_scale = ∂l̂/∂lower
@@ -51,7 +52,7 @@ def scale_batch(A, q, mu, lower, active, dims, sliding=None):
     """
     B, K = mu.shape
     n = K * len(dims)
-    if _symmetric(A):
+    if (np.count_nonzero(symmetric) == B) if symmetric is not None else _symmetric(A):
         A_sym = A
     else:
         A_sym = A + A.swapaxes(1, 2)

@@ -25,7 +25,7 @@ enum { FIRST_FAILURE = MAX_ITER };
 // stick/slip or touch/separate switch): polishing and the backward pass may take it as inactive.
 #define WEAK_TOL 1e-6
 // Version of this interface: raise it with any change of the structs or the entry points.
-enum { API_VERSION = 4 };
+enum { API_VERSION = 5 };
 
 // diffcontact_ipm_solve: the interior-point method to ipm_tol, then (polish_steps > 0) polishing, of the batch
 // elements idx[start..stop) of B problems in the standard form of lanes.py (K contacts of dimension d, n = K·d;
@@ -81,7 +81,8 @@ struct AdjointArgs {
 // diffcontact_flat_test: for the elements start … stop − 1, whether ½(A + Aᵀ) on the rows in use (active contacts,
 // without the tangential rows of μ = 0 contacts) minus tol·ref·I is not positive definite (its Cholesky factorisation
 // fails), ref its largest diagonal entry on those rows; an element with ref ≤ 0 is flat, one without rows in use not
-// (flat.py, flat_elements).  Also whether all of A's entries are finite (the input check, in the same pass over A).
+// (flat.py, flat_elements).  Also, in the same pass over A, whether all of its entries are finite (the input check)
+// and whether it equals its transpose exactly (then the scaling uses it without forming ½(A + Aᵀ)).
 struct FlatArgs {
   const double* A;               // (B, n, n)
   const double* mu;              // (B, K)
@@ -89,7 +90,8 @@ struct FlatArgs {
   i64 K, d;
   double tol;
   unsigned char* flat;           // (B,) outputs: 1 where flat,
-  unsigned char* finite;         // (B,) 1 where every entry of A is finite
+  unsigned char* finite;         // (B,) 1 where every entry of A is finite,
+  unsigned char* symmetric;      // (B,) 1 where A equals its transpose
 };
 
 // What lanes.py checks on loading.

@@ -150,6 +150,9 @@ static int flat_range(const FlatArgs& a, i64 start, i64 stop) {
     V nf[4] = {};  // (x·0 is 0 for finite x, NaN for ±inf and NaN; four independent sums)
     for (i64 i = 0; i < (i64)n * n; i++) nf[i % 4] += w.P[i] * 0.0;
     const V nonfinite = (nf[0] + nf[1]) + (nf[2] + nf[3]);
+    M sym = M{} == 0;
+    for (int i = 0; i < n; i++)
+      for (int j = 0; j < i; j++) sym &= w.P[(i64)i * n + j] == w.P[(i64)j * n + i];
     M* used = (M*)w.rhs;  // (n vectors of scratch)
     for (int i = 0; i < n; i++) used[i] = i % D == 0 ? w.onl[i / D] : w.onl[i / D] & w.on[i / D];
     V ref = splat(0.0);
@@ -166,7 +169,11 @@ static int flat_range(const FlatArgs& a, i64 start, i64 stop) {
     }
     M ok = cholesky(n, Dense{w.P, n}, w.L);
     M flat = any_used & (~ok | (ref <= 0.0));
-    for (int l = 0; l < valid; l++) a.flat[b[l]] = flat[l] ? 1 : 0, a.finite[b[l]] = nonfinite[l] == 0.0 ? 1 : 0;
+    for (int l = 0; l < valid; l++) {
+      a.flat[b[l]] = flat[l] ? 1 : 0;
+      a.finite[b[l]] = nonfinite[l] == 0.0 ? 1 : 0;
+      a.symmetric[b[l]] = sym[l] ? 1 : 0;
+    }
   });
 }
 
