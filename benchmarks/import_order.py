@@ -3,8 +3,9 @@
 Imported first, diffcontact sets ``OMP_WAIT_POLICY=PASSIVE`` before torch loads its OpenMP runtime; imported after
 torch, it is too late (the runtime read the variable when it loaded) and torch's workers spin after each of its
 parallel regions, beside the solver's threads (``diffcontact.threads.spin_warning``).  This script times forward +
-backward of ``solve_cone_qp`` on the instances of ``diffcontact bench solver`` (2 threads, median of 10 calls
-after 2) in fresh processes that import in either order, alternating, and prints µs per problem for each order.
+backward of ``solve_cone_qp`` on the instances of ``diffcontact bench solver`` as that benchmark times them (2
+threads, median of 10 calls after 2) in fresh processes that import in either order, alternating, and prints µs
+per problem for each order.
 """
 
 from __future__ import annotations
@@ -16,19 +17,13 @@ import sys
 CHILD = """
 import {first}
 import {second}
-import statistics, time
-from diffcontact.bench.solver import _instances
+from diffcontact.bench.solver import _instances, _time_fwd_bwd
 from diffcontact.solver import solve_cone_qp
 from diffcontact.threads import set_threads
 set_threads(2)
 A, q, mu, lower = _instances(torch.Generator().manual_seed(0), {B}, {K}, {d})
-times = []
-for _ in range(12):
-    ins = [x.clone().requires_grad_() for x in (A, q, mu, lower)]
-    t0 = time.perf_counter()
-    solve_cone_qp(*ins).sum().backward()
-    times.append(time.perf_counter() - t0)
-print(1e6 * statistics.median(times[2:]) / {B})
+solve_cone_qp(A, q, mu, lower)  # (a second warm-up call before _time_fwd_bwd's own)
+print(1e6 * _time_fwd_bwd(solve_cone_qp, A, q, mu, lower, 10)[0] / {B})
 """
 
 
