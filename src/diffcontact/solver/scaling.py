@@ -204,17 +204,30 @@ def _chain_rule_range(
                 g_q[b, i] = -T[b, i] * u[b, i] / g
         if need[2] and d > 1:
             for k in range(K):
-                acc = slide[b, k] * u[b, k * d]
-                for r in range(k * d, k * d + d):
-                    if S[b, r] == 0.0:  # (T_r does not depend on μ)
-                        continue
-                    a_tz = 0.0  # (A T z)_r and (A T u)_r
-                    a_tu = 0.0
+                r0 = k * d
+                acc = slide[b, k] * u[b, r0]
+                if S[b, r0] != 0.0 or S[b, r0 + 1] != 0.0 or S[b, r0 + d - 1] != 0.0:
+                    # (A T z)_r and (A T u)_r of the contact's rows r0 + i (the last again for d = 2), six
+                    # independent sums (one at a time waits on the latency of each addition), each in the order of j
+                    ra, rb, rc = r0, r0 + 1, r0 + d - 1
+                    za, zb, zc, ua, ub, uc = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                     for j in range(n):
-                        a_tz += A[b, r, j] * T[b, j] * z[b, j]
-                        a_tu += A[b, r, j] * T[b, j] * u[b, j]
-                    gT = -u[b, r] * a_tz - z[b, r] * a_tu - u[b, r] * q[b, r] / g + g * z[b, r] * gf[b, r]
-                    acc += gT * S[b, r]
+                        tj, zj, uj = T[b, j], z[b, j], u[b, j]
+                        a, bb, c = A[b, ra, j] * tj, A[b, rb, j] * tj, A[b, rc, j] * tj
+                        za += a * zj
+                        ua += a * uj
+                        zb += bb * zj
+                        ub += bb * uj
+                        zc += c * zj
+                        uc += c * uj
+                    for i in range(d):
+                        r = r0 + i
+                        if S[b, r] == 0.0:  # (T_r does not depend on μ)
+                            continue
+                        a_tz = za if i == 0 else (zb if i == 1 else zc)
+                        a_tu = ua if i == 0 else (ub if i == 1 else uc)
+                        gT = -u[b, r] * a_tz - z[b, r] * a_tu - u[b, r] * q[b, r] / g + g * z[b, r] * gf[b, r]
+                        acc += gT * S[b, r]
                 g_mu[b, k] = acc
         if need[3]:
             for k in range(K):
