@@ -63,6 +63,10 @@ RHO, RHO_MAX = 1e4, 1e5
 ALM_STEPS = 20
 ALM_TOL = 1e-13  # relative miss of the equality at convergence
 ALM_ACCEPT = 1e-9  # ... below which an iterate counts as a minimiser
+# a stall up to this relative miss, having moved ALM_FAR times farther than that from its start, is the inner
+# solves' accuracy (their KKT tolerance times the penalty's conditioning; measured up to 9e-8), not a set that is a
+# point (there the iterates creep towards the start: 6–200 times their miss in the solver's accuracy tests)
+ALM_FLOOR, ALM_FAR = 1e-7, 1e4
 
 
 @functools.cache
@@ -350,8 +354,9 @@ def _least_norm_several(idx, x, PiN, solve):
     steps left, would not reach ALM_TOL (it ends as the remaining steps would, in 4–5 solves instead of
     ALM_STEPS on BP5's training problems).  An element that has not converged keeps x, and is reported INACCURATE
     if its last iterate was a minimiser (miss ≤ ALM_ACCEPT) away from x (the set is not a point, and x is not its
-    least-norm point).  So does an element whose least-norm point is within UNIQUE_TOL·max(1, ‖x‖∞) of x (a set
-    that is a point up to that).  Returns
+    least-norm point).  One that stalled at the inner solves' accuracy (miss ≤ ALM_FLOOR, ALM_FAR times smaller
+    than its distance from x) takes its last iterate, reported INACCURATE.  An element whose least-norm point is
+    within UNIQUE_TOL·max(1, ‖x‖∞) of x keeps x (a set that is a point up to that).  Returns
     g (m, n), status (m,) (of its last solve where g is not x, else 0 or INACCURATE) and moved (m,) bool: g is
     not x."""
     m, n = x.shape
@@ -387,10 +392,12 @@ def _least_norm_several(idx, x, PiN, solve):
         steady = rho >= RHO_MAX
         rho = rho * grow
     unconverged = unconverged | live
-    moved = (g.detach() - x.detach()).abs().amax(-1) > UNIQUE_TOL * scale
+    dist = (g.detach() - x.detach()).abs().amax(-1)
+    moved = dist > UNIQUE_TOL * scale
+    floor = unconverged & moved & (size <= ALM_FLOOR * scale) & (dist >= ALM_FAR * size)
     short = unconverged & moved & (size <= ALM_ACCEPT * scale)
-    status = torch.where(moved & ~unconverged, status, torch.where(short, Status.INACCURATE, 0))
-    moved = moved & ~unconverged
+    status = torch.where(moved & ~unconverged, status, torch.where(short | floor, Status.INACCURATE, 0))
+    moved = moved & (~unconverged | floor)
     return torch.where(moved[:, None], g, x), status, moved
 
 
