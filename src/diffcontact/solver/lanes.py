@@ -191,9 +191,10 @@ _inline_below = 0  # batches smaller than this run in the calling thread (set by
 def parallel(run, count: int) -> None:
     """Call run(start, stop) on contiguous runs of whole lane groups of range(count), one per thread.
 
-    The solver's threads (``numba.get_num_threads()`` of them): Python threads that wait on a lock when idle,
-    running code that releases the GIL (this kernel, numba functions compiled with ``nogil``).  One pool for
-    every stage: OpenMP workers of a ``prange`` would spin after their loop and compete with it for the cores.
+    The solver's threads (``numba.get_num_threads()`` of them): the calling thread and a pool of Python threads
+    that wait on a lock when idle, running code that releases the GIL (this kernel, numba functions compiled with
+    ``nogil``).  One pool for every stage: OpenMP workers of a ``prange`` would spin after their loop and compete
+    with it for the cores.
     """
     global _pool, _pool_size, _numba_started, _inline_below
     if count < _inline_below:  # (one thread: the common small call, without the questions below)
