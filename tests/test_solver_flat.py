@@ -254,3 +254,26 @@ def test_gradcheck_of_the_flat_projection_alone():
 
     inputs = (F.clone().requires_grad_(), w.clone().requires_grad_())
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-7, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("seed,b", [(301, 171), (309, 32), (310, 34)])
+def test_stalled_least_norm_stage_ends_at_the_minimum_norm_minimiser(seed, b):
+    """Elements of degenerate batches (tests/test_solver_robustness.py; K = 4, d = 2, two flat directions) where the
+    least-norm stage's augmented Lagrangian stalls at its inner solves' accuracy: the answer, reported INACCURATE,
+    is a minimiser with the norm of the two-stage Clarabel reference (it used to be the stage's start, 3–23× larger
+    in norm, with status 0)."""
+    from test_solver_robustness import _degenerate_batch
+
+    A, q, mu, lower, active = _degenerate_batch(torch.Generator().manual_seed(seed), 200, 4, 2)
+    one = slice(b, b + 1)
+    assert active[b].all()
+    f, info = solve_cone_qp(A[one], q[one], mu[one], lower[one], active[one], return_info=True)
+    assert info.status.tolist() == [Status.INACCURATE]
+    Ab, qb = _projected(A[b].numpy(), q[b].numpy())
+    mub, lb, fb = mu[b].numpy(), lower[b].numpy(), f[0].numpy()
+    f_ref, obj_ref = clarabel_solve(Ab, qb, mub, lb, 2)
+    f_min = clarabel_min_norm(Ab, qb, mub, lb, 2, f_ref)
+    scale = max(1.0, np.abs(f_ref).max())
+    obj_scale = max(1.0, abs(obj_ref), np.abs(qb).max() * scale)
+    assert abs(0.5 * fb @ Ab @ fb + qb @ fb - obj_ref) <= 1e-7 * obj_scale
+    assert abs(np.linalg.norm(fb) - np.linalg.norm(f_min)) <= 1e-6 * scale
