@@ -260,7 +260,7 @@ def test_gradcheck_of_the_flat_projection_alone():
 def test_stalled_least_norm_stage_ends_at_the_minimum_norm_minimiser(seed, b):
     """Elements of degenerate batches (tests/test_solver_robustness.py; K = 4, d = 2, two flat directions) where the
     least-norm stage's augmented Lagrangian stalls at its inner solves' accuracy: the answer, reported INACCURATE,
-    is a minimiser with the norm of the two-stage Clarabel reference (it used to be the stage's start, 3–23× larger
+    is a minimiser with the norm of the two-stage Clarabel reference (it used to be the stage's start, 6–23× larger
     in norm, with status 0)."""
     from test_solver_robustness import _degenerate_batch
 
