@@ -61,10 +61,10 @@ def bench_solver(
     dims: list[int] = typer.Option(
         [1, 2, 3], "--dim", "-d", help="Contact-space dimensions d (1: frictionless limits, as the rope's)."
     ),
-    repeats: int = typer.Option(5, help="Timed repetitions of our solver (median reported)."),
+    repeats: int = typer.Option(7, help="Timed repetitions of our solver (median reported)."),
     reference: bool = typer.Option(True, help="Also time the cvxpylayers reference (needs the extra)."),
     ref_max_batch: int = typer.Option(
-        800, help="Time the reference on at most this many problems per setting (its cost is per problem)."
+        64, help="Time the reference on at most this many problems per setting (its cost is per problem)."
     ),
     seed: int = typer.Option(0, help="Seed of the random instances."),
     threads: int = THREADS,
@@ -448,11 +448,13 @@ def bench_train(
     models: list[str] = typer.Option(["CM-CD-CLNN"], "--models", "-m", help="Models (repeat the option for several)."),
     batch: int = typer.Option(200, "--batch", help="Chunks per step (200: the published preset's batch)."),
     warmup: int = typer.Option(2, help="Untimed steps first."),
-    repeats: int = typer.Option(5, help="Timed steps (medians reported)."),
+    repeats: int = typer.Option(15, help="Timed steps (medians reported)."),
     busy: int = typer.Option(0, "--busy", help="Also time the step beside this many busy processes (started here)."),
     seed: int = typer.Option(0, help="Seed of the data and the initial parameters."),
     out: str = typer.Option("", help="Also write the results as JSON to this file."),
-    threads: int = THREADS,
+    threads: int = typer.Option(
+        1, "--threads", min=1, help="Threads of torch, numba and the contact solver (default 1: as `train` runs)."
+    ),
 ) -> None:
     """Time of one training step (forward, backward, optimiser) per task and model: dynamics, contact model and
     optimiser, beside the same step with contacts disabled (float32, synthetic chunks from the task's simulator)."""

@@ -43,9 +43,9 @@ def run_solver_benchmark(
     batches=(1, 128, 800),
     contacts=(1, 2, 3, 5, 19),
     dims=(1, 2, 3),
-    repeats: int = 5,
+    repeats: int = 7,
     reference: bool = True,
-    ref_max_batch: int = 800,
+    ref_max_batch: int = 64,
     seed: int = 0,
     out: str | None = None,
 ) -> list[dict]:

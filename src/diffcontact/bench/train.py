@@ -213,7 +213,7 @@ def run_train_benchmark(
     models=("CM-CD-CLNN",),
     batch: int = BATCH,
     warmup: int = 2,
-    repeats: int = 5,
+    repeats: int = 15,
     seed: int = 0,
     busy: int = 0,
     out: str | None = None,
