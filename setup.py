@@ -1,7 +1,7 @@
 """Build of the contact solver's compiled kernel (everything else is in pyproject.toml).
 
-The kernel is a plain shared library loaded with ctypes (``solver/lanes.py``), not a CPython module: setuptools
-builds it as an extension only for its file name and compiler flags."""
+The kernel is the CPython extension module ``diffcontact.solver._lanes`` (``csrc/lanes_module.cpp``; called by
+``solver/lanes.py``)."""
 
 import glob
 

@@ -74,7 +74,7 @@ def test_the_wheel_installs_into_a_fresh_venv_and_simulates_from_another_directo
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DIFFCONTACT_TASKS", "VIRTUAL_ENV")}
     where = _run(
         [str(python), "-c", "import diffcontact as dc, diffcontact.solver.lanes as k; "
-         "print(dc.__file__); print(dc.config.tasks_dir()); print(k._load()._name)"],
+         "print(dc.__file__); print(dc.config.tasks_dir()); print(k._load().__file__)"],
         cwd=elsewhere, env=env,
     ).split()  # fmt: skip
     assert all(Path(p).is_relative_to(venv) for p in where), where  # (the installed copy, not the work tree)

@@ -5,7 +5,6 @@ moves the last iterates by about 1e-9."""
 
 from __future__ import annotations
 
-import ctypes
 import os
 import subprocess
 import sys
@@ -109,27 +108,56 @@ def test_bad_environment_variable_does_not_break_the_import():
 
 
 def test_python_and_kernel_agree_on_the_shared_facts():
-    """Status codes, failure rule, weak-cone threshold and struct sizes: csrc/api.h against the Python copies."""
-    got = lanes._lib.diffcontact_constants().contents
-    assert {s.name: int(s) for s in Status} == {s.name: getattr(got, s.name.lower()) for s in Status}
-    assert got.first_failure == status.FIRST_FAILURE
-    assert got.weak_tol == status.WEAK_TOL
-    assert got.solve_args_size == ctypes.sizeof(lanes.SolveArgs)
-    assert got.adjoint_args_size == ctypes.sizeof(lanes.AdjointArgs)
+    """Status codes, failure rule and weak-cone threshold: csrc/api.h against the Python copies."""
+    got = lanes._lib.constants()
+    assert {s.name: int(s) for s in Status} == {s.name: got[s.name.lower()] for s in Status}
+    assert got["first_failure"] == status.FIRST_FAILURE
+    assert got["weak_tol"] == status.WEAK_TOL
+    assert got["api_version"] == lanes.API_VERSION
     assert [bool(status.is_failure(s)) for s in Status] == [False, False, True, True, True]
 
 
-@pytest.mark.parametrize("args", [lanes.SolveArgs, lanes.AdjointArgs, lanes.FlatArgs])
-def test_packed_arguments_read_back_field_by_field(args):
-    """The bytes the kernel receives (``lanes._packer``) hold every field where the ctypes struct (api.h) has it."""
-    kinds = {
-        ctypes.c_int64: lambda i: -3 * i - 1,
-        ctypes.c_double: lambda i: 0.25 + i,
-        ctypes.c_void_p: lambda i: 2**40 + i,
-    }
-    values = [kinds[t](i) for i, (_, t) in enumerate(args._fields_)]
-    back = args.from_buffer_copy(lanes._packer(args).pack(*values))
-    assert [getattr(back, name) for name, _ in args._fields_] == values
+def test_kernel_refuses_arrays_that_do_not_fit_the_problem():
+    """The module checks every array against B, K, d before the kernel reads it: a short, wrongly typed or
+    non-contiguous array, an element index out of range or a bad range raise, naming the argument."""
+    K, d, B = 2, 3, 5
+    n = K * d
+    A = np.tile(np.eye(n), (B, 1, 1))
+    T, c, lower = np.ones((B, n)), np.tile([-1.0, 0.5, 0.0], (B, K)), np.zeros((B, K))  # (sticking contacts)
+    on = np.ones((B, K), dtype=np.bool_)
+    out = lanes.IPMResult(A, T, on, on, d)
+    idx = np.arange(B, dtype=np.int64)
+    options = (K, d, IPM_TOL, 1e-13, 1e-7, 60, START_MARGIN, IPM_TOL, 3)
+
+    def solve(options=options, start=0, stop=B, **change):
+        args = dict(A=A, T=T, c=c, lower=lower, on=on, on_l=on, idx=idx, trace=lanes._NO_TRACE, out=out._buffer)
+        args.update(change)
+        return lanes._lib.solve(*args.values(), *options, start, stop)
+
+    solve()  # (the arguments as lanes.solve passes them)
+    assert (out.status == Status.CONVERGED).all()
+    np.testing.assert_allclose(out.z, np.tile([1.0, -0.5, 0.0], (B, K)), atol=1e-12)  # (unconstrained minimiser)
+    with pytest.raises(ValueError, match="A has"):
+        solve(A=A[:, :-1].copy())
+    with pytest.raises(ValueError, match="c has"):
+        solve(c=np.zeros((B, n), dtype=np.float32))
+    with pytest.raises(ValueError, match="out has"):
+        solve(out=np.zeros(out._buffer.size + 1))
+    with pytest.raises(ValueError, match="element 5 of 5"):
+        solve(idx=np.array([0, 5], dtype=np.int64), stop=2)
+    with pytest.raises(ValueError, match="elements 0 ... 6 of 5"):
+        solve(stop=6)
+    with pytest.raises(ValueError, match="contiguous"):
+        solve(T=np.ones((n, B)).T)
+    with pytest.raises(ValueError, match="d = 4"):
+        solve(options=(K, 4, *options[2:]))
+    with pytest.raises(TypeError, match="takes 20 arguments"):
+        lanes._lib.solve(A, T)
+    with pytest.raises(ValueError, match="flags has"):
+        lanes._lib.flat(A, lower, on, np.zeros(3 * B + 1, dtype=np.bool_), K, d, 1e-9, 0, B)
+    with pytest.raises(ValueError, match="v_l has"):
+        lanes._lib.adjoint(A, T, out._buffer, on, on, c, np.empty((B, n)), np.empty((B, 1)), np.empty(B, np.bool_),
+                           K, d, 0, B)  # fmt: skip
 
 
 @pytest.mark.parametrize("d", [2, 3])

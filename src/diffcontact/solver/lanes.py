@@ -16,140 +16,46 @@ equations in ``exact.py``).  The tolerances and the retries are the caller's (``
 
 Three entry points: the interior-point method followed by polishing (``solve``), the adjoint solve of the
 backward pass (``adjoint``) and the Cholesky test for flat directions of the input (``flat_test``, for
-``flat.flat_elements``).  Built with the package (``setup.py``) as a plain shared library and called through
-ctypes, which releases the GIL, so the batch is split among threads here.  The lane width (8 with AVX-512, 4 with
-AVX2, else 2) is chosen from the CPU on first use; the environment variable ``DIFFCONTACT_LANES`` (8, 4 or 2)
-forces one that the CPU supports.
+``flat.flat_elements``).  Built with the package (``setup.py``) as the extension module ``_lanes``, whose
+functions release the GIL while the kernel runs, so the batch is split among threads here.  The lane width (8 with
+AVX-512, 4 with AVX2, else 2) is chosen from the CPU on first use; the environment variable ``DIFFCONTACT_LANES``
+(8, 4 or 2) forces one that the CPU supports.
 """
 
 from __future__ import annotations
 
-import ctypes
 import functools
-import importlib.machinery
 import math
 import os
-import struct
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import numba
 import numpy as np
 
 from diffcontact.solver.status import FIRST_FAILURE, WEAK_TOL, Status
 
-_i64, _f64, _ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+API_VERSION = 6
 
 
-class SolveArgs(ctypes.Structure):
-    """``struct SolveArgs`` of ``csrc/api.h`` (field by field, the same names; pointers as addresses)."""
-
-    _fields_ = [
-        *((name, _ptr) for name in ("A", "scale", "c", "lower", "on", "on_l")),
-        ("K", _i64),
-        ("d", _i64),
-        ("idx", _ptr),
-        ("ipm_tol", _f64),
-        ("final_tol", _f64),
-        ("acceptable_tol", _f64),
-        ("max_iter", _i64),
-        ("start_margin", _f64),
-        ("refine_tol", _f64),
-        ("polish_steps", _i64),
-        *((name, _ptr) for name in ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")),
-        ("trace", _ptr),
-        ("T", _i64),
-    ]
-
-
-class AdjointArgs(ctypes.Structure):
-    """``struct AdjointArgs`` of ``csrc/api.h``."""
-
-    _fields_ = [
-        *((name, _ptr) for name in ("A", "scale", "s_l", "lam_l", "s_q", "lam_q", "on", "on_l")),
-        ("K", _i64),
-        ("d", _i64),
-        *((name, _ptr) for name in ("g", "u", "v_l", "ok")),
-    ]
-
-
-class FlatArgs(ctypes.Structure):
-    """``struct FlatArgs`` of ``csrc/api.h``."""
-
-    _fields_ = [
-        *((name, _ptr) for name in ("A", "mu", "active")),
-        ("K", _i64),
-        ("d", _i64),
-        ("tol", _f64),
-        ("flat", _ptr),
-        ("finite", _ptr),
-        ("symmetric", _ptr),
-    ]
-
-
-class _Constants(ctypes.Structure):
-    """``struct Constants`` of ``csrc/api.h``: what is checked on loading."""
-
-    _fields_ = [
-        *((name, _i64) for name in ("api_version", "solve_args_size", "adjoint_args_size", "flat_args_size")),
-        *((name, _i64) for name in ("converged", "inaccurate", "max_iter", "numerical", "unbounded", "first_failure")),
-        ("weak_tol", _f64),
-    ]
-
-
-API_VERSION = 5
-
-_CODES = {_i64: "q", _f64: "d", _ptr: "Q"}
-
-
-def _packer(args: type[ctypes.Structure]) -> struct.Struct:
-    """The bytes of an argument struct (all fields 8 bytes, no padding) packed in one call: 4× faster than making
-    the ctypes Structure (≈ 1.5 µs of a call at B = 1, d = 3, K = 1); the kernel reads them through the pointer."""
-    packer = struct.Struct("=" + "".join(_CODES[t] for _, t in args._fields_))
-    assert packer.size == ctypes.sizeof(args), args
-    return packer
-
-
-_pack_solve, _pack_adjoint, _pack_flat = (_packer(a).pack for a in (SolveArgs, AdjointArgs, FlatArgs))
-
-
-def _load() -> ctypes.CDLL:
-    """The kernel's shared library (built by ``setup.py`` as ``_lanes`` with the extension suffix)."""
-    here = Path(__file__).parent
-    paths = [here / f"_lanes{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES]
-    path = next((p for p in paths if p.exists()), None)
+def _load():
+    """The kernel's extension module (``_lanes``, built by ``setup.py``), checked against the Python copies of the
+    facts of ``csrc/api.h``."""
     build = "build it with `pip install -e .` or `python setup.py build_ext --inplace`"
-    if path is None:
-        raise ImportError(f"the contact solver's compiled kernel is missing from {here}: {build}")
-    lib = ctypes.CDLL(str(path))
-    if not hasattr(lib, "diffcontact_constants"):
-        raise ImportError(f"{path} is a stale build of the contact solver's kernel: {build}")
-    lib.diffcontact_constants.restype = ctypes.POINTER(_Constants)
-    got = lib.diffcontact_constants().contents
-    got = {name: getattr(got, name) for name, _ in _Constants._fields_}
+    try:
+        from diffcontact.solver import _lanes
+    except ImportError as e:  # (missing, or a build from before it was a module: no PyInit__lanes)
+        raise ImportError(f"the contact solver's compiled kernel cannot be loaded ({e}): {build}") from e
+    got = _lanes.constants()
     want = {
         "api_version": API_VERSION,
-        "solve_args_size": ctypes.sizeof(SolveArgs),
-        "adjoint_args_size": ctypes.sizeof(AdjointArgs),
-        "flat_args_size": ctypes.sizeof(FlatArgs),
         **{status.name.lower(): int(status) for status in Status},
         "first_failure": int(FIRST_FAILURE),
         "weak_tol": WEAK_TOL,
     }
     if got != want:
-        raise ImportError(f"{path} disagrees with lanes.py (a stale build?): kernel {got}, Python {want}; {build}")
-    lib.diffcontact_ipm_supported.restype = ctypes.c_int
-    lib.diffcontact_ipm_select.restype = ctypes.c_int
-    lib.diffcontact_ipm_select.argtypes = [ctypes.c_int]
-    lib.diffcontact_ipm_width.restype = ctypes.c_int
-    lib.diffcontact_ipm_solve.restype = ctypes.c_int
-    # (the argument structs as bytes of ``_packer``: c_char_p passes a pointer to them, which the kernel only reads)
-    lib.diffcontact_ipm_solve.argtypes = [ctypes.c_char_p, _i64, _i64]
-    lib.diffcontact_adjoint_solve.restype = ctypes.c_int
-    lib.diffcontact_adjoint_solve.argtypes = [ctypes.c_char_p, _i64, _i64]
-    lib.diffcontact_flat_test.restype = ctypes.c_int
-    lib.diffcontact_flat_test.argtypes = [ctypes.c_char_p, _i64, _i64]
-    return lib
+        stale = f"{_lanes.__file__} disagrees with lanes.py (a stale build?)"
+        raise ImportError(f"{stale}: kernel {got}, Python {want}; {build}")
+    return _lanes
 
 
 _lib = _load()
@@ -158,7 +64,7 @@ _width: int | None = None  # chosen on first use (a bad DIFFCONTACT_LANES must n
 
 def supported_widths() -> list[int]:
     """Lane widths this CPU can run, widest first."""
-    bits = _lib.diffcontact_ipm_supported()
+    bits = _lib.supported()
     return [w for w in (8, 4, 2) if bits & w]
 
 
@@ -171,7 +77,7 @@ def select_width(width: int | None = None) -> int:
         env = os.environ.get("DIFFCONTACT_LANES", "")
         source = f"DIFFCONTACT_LANES={env!r}"
         width = int(env) if env.strip().isdigit() else (supported_widths()[0] if not env else -1)
-    if width not in (8, 4, 2) or not _lib.diffcontact_ipm_select(width):
+    if width not in (8, 4, 2) or not _lib.select(width):
         raise ValueError(f"{source}: not a lane width this CPU runs; choose one of {supported_widths()}")
     _width, _inline_below = width, 0
     return width
@@ -227,30 +133,6 @@ def parallel(run, count: int) -> None:
             f.result()
 
 
-def _check(rc: int, K: int) -> None:
-    if rc == -1:
-        raise MemoryError(f"contact solver kernel: out of memory for K = {K}")
-    if rc != 0:
-        raise RuntimeError(f"contact solver kernel failed (code {rc})")
-
-
-def _address(a: np.ndarray) -> int:
-    """The address of a C-contiguous array's data (through the buffer protocol: 4× faster than ``a.ctypes.data``,
-    which stays the way for read-only and empty arrays)."""
-    try:
-        return ctypes.addressof(ctypes.c_char.from_buffer(a))
-    except (TypeError, ValueError, BufferError):
-        return a.ctypes.data
-
-
-@numba.njit(cache=True, nogil=True)
-def _addresses(a, b, c, d, e, f, g, h):
-    """The addresses of eight C-contiguous arrays' data (one compiled call: 3× faster than ``_address`` on each;
-    repeat an array for the slots not needed)."""
-    return (a.ctypes.data, b.ctypes.data, c.ctypes.data, d.ctypes.data, e.ctypes.data, f.ctypes.data, g.ctypes.data,
-            h.ctypes.data)  # fmt: skip
-
-
 class _Output:
     """An output of ``IPMResult``: a view of its buffer, made on first access and then kept as an instance attribute
     (a call without gradients reads only z and status; eight views made up front cost 3 µs of a small call)."""
@@ -274,7 +156,7 @@ class _Output:
 class IPMResult:
     """What ``solve`` returns: the solution, its status, and what the backward pass needs (float64 numpy, C-contiguous;
     B batch, K contacts, n = K·d).  Rows not solved keep their initial values (z = 0, unit ray slacks and
-    multipliers, status CONVERGED).  The outputs are views of one buffer, whose addresses are ``addresses``."""
+    multipliers, status CONVERGED).  The outputs are views of one buffer (``_layout``), which the kernel writes."""
 
     z = _Output(0)  # (B, n)
     s_l = _Output(1)  # (B, K) slack and multiplier of the rays
@@ -285,7 +167,7 @@ class IPMResult:
     iterations = _Output(6, np.int64)  # (B,) int64 interior-point iterations
     residual = _Output(7)  # (B,) scaled KKT residual of the returned point
 
-    OUTPUTS = ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")  # as in ``SolveArgs``
+    OUTPUTS = ("z", "s_l", "lam_l", "s_q", "lam_q", "status", "iterations", "residual")  # (csrc/lanes_module.cpp)
 
     def __init__(self, A: np.ndarray, T: np.ndarray, on: np.ndarray, on_l: np.ndarray, d: int):
         """Outputs in their initial state for the problems P = T·A·T (A: (B, n, n) symmetric, T: (B, n); see
@@ -295,8 +177,6 @@ class IPMResult:
         self.A, self.T, self.on, self.on_l, self.d = A, T, on, on_l, d
         self._slices, initial = _layout(B, K, d)
         self._buffer = initial.copy()  # (8-byte items: the int64 outputs are views of it too)
-        base = _address(self._buffer)
-        self.addresses = [base + 8 * a for a, _, _ in self._slices]
 
     def __repr__(self) -> str:
         B, n = self.z.shape
@@ -306,7 +186,8 @@ class IPMResult:
 @functools.lru_cache(maxsize=64)
 def _layout(B: int, K: int, d: int) -> tuple[tuple, np.ndarray]:
     """The layout of an ``IPMResult``'s buffer: (start, stop, shape) of each output in ``IPMResult.OUTPUTS``
-    order, and the buffer's initial content (read-only: zeros, and unit ray slacks and multipliers)."""
+    order (the kernel's, ``outputs`` in ``csrc/lanes_module.cpp``, which checks the buffer's size), and the buffer's
+    initial content (read-only: zeros, and unit ray slacks and multipliers)."""
     slices, end = [], 0
     for shape in ((B, K * d), (B, K), (B, K), (B, K, d), (B, K, d), (B,), (B,), (B,)):
         start, end = end, end + math.prod(shape)
@@ -356,24 +237,9 @@ def solve(
         trace = _NO_TRACE
     elif trace.dtype != np.float64 or trace.ndim != 3 or trace.shape[::2] != (B, 4) or not trace.flags.c_contiguous:
         raise ValueError(f"trace must be a C-contiguous float64 array of shape (B, T, 4) with B = {B}")
-    addresses = _addresses(A, T, c, lower, on, on_l, idx, trace)
-    args = _pack_solve(
-        *addresses[:6],
-        K,
-        d,
-        addresses[6],
-        ipm_tol,
-        final_tol,
-        acceptable_tol,
-        max_iter,
-        start_margin,
-        refine_tol,
-        polish_steps,
-        *out.addresses,
-        addresses[7] if trace.size else 0,
-        trace.shape[1],
-    )
-    parallel(lambda start, stop: _check(_lib.diffcontact_ipm_solve(args, start, stop), K), len(idx))
+    buffer, solve_ = out._buffer, _lib.solve
+    options = (K, d, ipm_tol, final_tol, acceptable_tol, max_iter, start_margin, refine_tol, polish_steps)
+    parallel(lambda start, stop: solve_(A, T, c, lower, on, on_l, idx, trace, buffer, *options, start, stop), len(idx))
     return out
 
 
@@ -385,9 +251,8 @@ def adjoint(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     n = K * res.d
     u, v_l = np.empty((B, n)), np.empty((B, K))
     ok = np.empty(B, dtype=np.bool_)
-    at = _addresses(res.A, res.T, res.on, res.on_l, g, u, v_l, ok)
-    args = _pack_adjoint(*at[:2], *res.addresses[1:5], *at[2:4], K, res.d, *at[4:])
-    parallel(lambda start, stop: _check(_lib.diffcontact_adjoint_solve(args, start, stop), K), B)
+    args = (res.A, res.T, res._buffer, res.on, res.on_l, g, u, v_l, ok, K, res.d)
+    parallel(lambda start, stop: _lib.adjoint(*args, start, stop), B)
     return u, v_l, ok
 
 
@@ -400,11 +265,8 @@ def flat_test(
     (C-contiguous)."""
     B, K = mu.shape
     flags = np.zeros((3, B), dtype=np.bool_)
-    flat, finite, symmetric = flags[0], flags[1], flags[2]
-    at = _addresses(A, mu, active, flat, finite, symmetric, flat, flat)
-    args = _pack_flat(*at[:3], K, d, tol, *at[3:6])
-    parallel(lambda start, stop: _check(_lib.diffcontact_flat_test(args, start, stop), K), B)
-    return flat, finite, symmetric
+    parallel(lambda start, stop: _lib.flat(A, mu, active, flags, K, d, tol, start, stop), B)
+    return flags[0], flags[1], flags[2]
 
 
 @numba.njit(cache=True, nogil=True)

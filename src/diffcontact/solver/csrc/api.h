@@ -1,7 +1,7 @@
 // The boundary between the compiled kernel and Python: the one definition of the status codes, the failure rule,
-// the weak-cone threshold and the argument structs of the entry points.  lanes.py mirrors the structs with
-// ctypes under the same field names and checks, when it loads the library, that its copies of these facts agree
-// with diffcontact_constants() (the sizes of the structs included).
+// the weak-cone threshold and the arguments of the entry points.  lanes_module.cpp fills these structs from the
+// arguments of the module's functions (lanes.py calls them); lanes.py checks, when it loads the module, that its
+// copies of the status codes, the failure rule and the threshold agree with _lanes.constants().
 //
 // Plain C declarations, no headers: included by the per-ISA translation units (which switch the target first)
 // as well as by lanes_module.cpp.
@@ -25,9 +25,9 @@ enum { FIRST_FAILURE = MAX_ITER };
 // stick/slip or touch/separate switch): polishing and the backward pass may take it as inactive.
 #define WEAK_TOL 1e-6
 // Version of this interface: raise it with any change of the structs or the entry points.
-enum { API_VERSION = 5 };
+enum { API_VERSION = 6 };
 
-// diffcontact_ipm_solve: the interior-point method to ipm_tol, then (polish_steps > 0) polishing, of the batch
+// _lanes.solve: the interior-point method to ipm_tol, then (polish_steps > 0) polishing, of the batch
 // elements idx[start..stop) of B problems in the standard form of lanes.py (K contacts of dimension d, n = K·d;
 // arrays C-contiguous, row-major).  Writes the rows idx[start..stop) of the outputs.  P = T·A·T is formed per group
 // as it is gathered (P_ij = T_i·A_ij·T_j, plus 1 on the diagonal where T_i = 0: a row the answer does not depend on;
@@ -60,7 +60,7 @@ struct SolveArgs {
   i64 T;
 };
 
-// diffcontact_adjoint_solve: Kᵀ[u; v] = [g; 0] (implicit.py) of the elements start … stop − 1, the weakly active
+// _lanes.adjoint: Kᵀ[u; v] = [g; 0] (implicit.py) of the elements start … stop − 1, the weakly active
 // cones of singular elements taken as inactive.
 struct AdjointArgs {
   const double* A;           // (B, n, n): P = T·A·T as SolveArgs
@@ -78,7 +78,7 @@ struct AdjointArgs {
   unsigned char* ok;         // (B,) 0 where K is singular even with the weakly active cones taken as inactive
 };
 
-// diffcontact_flat_test: for the elements start … stop − 1, whether ½(A + Aᵀ) on the rows in use (active contacts,
+// _lanes.flat: for the elements start … stop − 1, whether ½(A + Aᵀ) on the rows in use (active contacts,
 // without the tangential rows of μ = 0 contacts) minus tol·ref·I is not positive definite (its Cholesky factorisation
 // fails), ref its largest diagonal entry on those rows; an element with ref ≤ 0 is flat, one without rows in use not
 // (flat.py, flat_elements).  Also, in the same pass over A, whether all of its entries are finite (the input check)
@@ -92,13 +92,6 @@ struct FlatArgs {
   unsigned char* flat;           // (B,) outputs: 1 where flat,
   unsigned char* finite;         // (B,) 1 where every entry of A is finite,
   unsigned char* symmetric;      // (B,) 1 where A equals its transpose
-};
-
-// What lanes.py checks on loading.
-struct Constants {
-  i64 api_version, solve_args_size, adjoint_args_size, flat_args_size;
-  i64 converged, inaccurate, max_iter, numerical, unbounded, first_failure;
-  double weak_tol;
 };
 
 #endif
