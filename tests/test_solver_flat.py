@@ -256,19 +256,22 @@ def test_gradcheck_of_the_flat_projection_alone():
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-7, atol=1e-6, rtol=1e-5)
 
 
-@pytest.mark.parametrize("seed,b", [(301, 171), (309, 32), (310, 34)])
-def test_stalled_least_norm_stage_ends_at_the_minimum_norm_minimiser(seed, b):
+@pytest.mark.parametrize(
+    "seed,b,status", [(301, 171, Status.INACCURATE), (309, 32, Status.CONVERGED), (310, 34, Status.CONVERGED)]
+)
+def test_stalled_least_norm_stage_ends_at_the_minimum_norm_minimiser(seed, b, status):
     """Elements of degenerate batches (tests/test_solver_robustness.py; K = 4, d = 2, two flat directions) where the
-    least-norm stage's augmented Lagrangian stalls at its inner solves' accuracy: the answer, reported INACCURATE,
-    is a minimiser with the norm of the two-stage Clarabel reference (it used to be the stage's start, 6–23× larger
-    in norm, with status 0)."""
+    least-norm stage's augmented Lagrangian stalled at its inner solves' accuracy: the answer is a minimiser with the
+    norm of the two-stage Clarabel reference (it used to be the stage's start, 6–23× larger in norm, with status 0).
+    The first still stalls, reported INACCURATE; the other two converge since polishing halves the Newton steps
+    that overshoot (its inner solves reach rounding level)."""
     from test_solver_robustness import _degenerate_batch
 
     A, q, mu, lower, active = _degenerate_batch(torch.Generator().manual_seed(seed), 200, 4, 2)
     one = slice(b, b + 1)
     assert active[b].all()
     f, info = solve_cone_qp(A[one], q[one], mu[one], lower[one], active[one], return_info=True)
-    assert info.status.tolist() == [Status.INACCURATE]
+    assert info.status.tolist() == [status]
     Ab, qb = _projected(A[b].numpy(), q[b].numpy())
     mub, lb, fb = mu[b].numpy(), lower[b].numpy(), f[0].numpy()
     f_ref, obj_ref = clarabel_solve(Ab, qb, mub, lb, 2)
@@ -277,3 +280,30 @@ def test_stalled_least_norm_stage_ends_at_the_minimum_norm_minimiser(seed, b):
     obj_scale = max(1.0, abs(obj_ref), np.abs(qb).max() * scale)
     assert abs(0.5 * fb @ Ab @ fb + qb @ fb - obj_ref) <= 1e-7 * obj_scale
     assert abs(np.linalg.norm(fb) - np.linalg.norm(f_min)) <= 1e-6 * scale
+
+
+def test_a_pass_keeps_the_previous_answer_where_that_is_nearer():
+    """A near-PSD gyroscope problem of `diffcontact bench near-psd` (float32 data, solved in float64; a flat
+    direction): pass 1 (the interior point to 1e-5, then polishing) ends at a residual of 3.9e-12, short of rounding
+    level, so pass 2 runs, and ends at 9.5e-10 (the interior point to 1e-10, which polishing cannot improve there).
+    Pass 1's answer is kept: CONVERGED (it used to be pass 2's, INACCURATE), and the minimum-norm minimiser."""
+    A = torch.tensor(
+        [
+            [0.5826688408851624, 0.1416793018579483, -0.7539125680923462],
+            [0.1416793018579483, 1.3291927576065063, -0.4605324864387512],
+            [-0.7539125680923462, -0.4605324864387512, 1.0348381996154785],
+        ],
+        dtype=torch.float64,
+    )[None]
+    q = torch.tensor([[0.15119832754135132, -0.16317808628082275, -0.15282560884952545]], dtype=torch.float64)
+    mu, lower = torch.tensor([[0.8282952308654785]], dtype=torch.float64), torch.tensor([[0.007671198807656765]])
+    f, info = solve_cone_qp(A, q, mu, lower.double(), return_info=True)
+    assert info.status.tolist() == [Status.CONVERGED] and info.residual[0] <= 1e-10
+    Ab, qb = _projected(A[0].numpy(), q[0].numpy())
+    mub, lb, fb = mu[0].numpy(), lower[0].double().numpy(), f[0].numpy()
+    f_ref, obj_ref = clarabel_solve(Ab, qb, mub, lb, 3)
+    f_min = clarabel_min_norm(Ab, qb, mub, lb, 3, f_ref)
+    scale = max(1.0, np.abs(f_ref).max())
+    obj_scale = max(1.0, abs(obj_ref), np.abs(qb).max() * scale)
+    assert abs(0.5 * fb @ Ab @ fb + qb @ fb - obj_ref) <= TOL_OBJ * obj_scale
+    assert np.abs(fb - f_min).max() <= 1e-6 * scale

@@ -7,6 +7,7 @@ everything from the retry policy to the autograd Function then runs as it does i
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -25,13 +26,15 @@ def _problems(B: int = 5, K: int = 3, d: int = 2) -> tuple[torch.Tensor, torch.T
 
 @pytest.fixture
 def fail_element_1(monkeypatch):
-    """Force the kernel's status ``code`` on batch element 1 in every attempt, once the test sets ``code``."""
+    """Force the kernel's status ``code`` on batch element 1 in every attempt, once the test sets ``code`` (with the
+    residual of a failure, inf, as the kernel would pair them)."""
     real, forced = lanes.solve, {}
 
     def solve(*args, out=None, **kw):
         res = real(*args, out=out, **kw)
         if "code" in forced:
             res.status[1] = forced["code"]
+            res.residual[1] = np.inf
         return res
 
     monkeypatch.setattr(lanes, "solve", solve)

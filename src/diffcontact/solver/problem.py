@@ -310,7 +310,9 @@ def _solve_scaled(
       or ``tol`` if larger);
     - pass 2, for the elements that did not (status INACCURATE or MAX_ITER, not a numerical failure): the method
       to ``tol`` itself, then polishing; converged if the residual is at most ``tol`` (a degenerate solution, where
-      polishing stalls).  Without pass 2 where ``tol`` ≥ ``IPM_TOL``: pass 1 runs to ``tol``.
+      polishing stalls).  Where pass 1 ended with the lower residual, its answer is kept, judged by the same rule
+      (a flat direction: polishing from pass 1's start got nearer than pass 2 does).  Without pass 2 where
+      ``tol`` ≥ ``IPM_TOL``: pass 1 runs to ``tol``.
 
     Attempts: (1) every element from the default start (``START_MARGIN``); (2) the elements not converged, again
     from CVXOPT's start, farther inside the cones (``ROBUST_MARGIN``; two rope and BD5 problems of the simulation
@@ -589,12 +591,28 @@ def _frictionless_slide_limit(z, A, q, T, gamma, zero_mu, d):
 
 def _solve_passes(A, T, c, l_hat, on_q, on_l, d, idx, passes, options, start_margin, out) -> None:
     """Solve the elements ``idx`` into ``out``, pass after pass of ``passes`` (their tolerances), each pass only on
-    the elements the previous left INACCURATE or MAX_ITER."""
+    the elements the previous left INACCURATE or MAX_ITER.  Where a pass again ends INACCURATE or MAX_ITER, the
+    previous pass's answer is kept, CONVERGED, if it meets this pass's criterion (residual ≤ ``final_tol``) with the
+    lower residual: polishing from the looser start of pass 1 can end nearer the solution than pass 2 does on a
+    problem with a flat direction.  (Only then: an answer short of it, or an unbounded verdict, stays as this pass
+    leaves it, for the retries.)"""
+    kept = None
     for tols in passes:
         lanes.solve(A, T, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
+        if kept is not None:
+            now = out.status[idx]
+            kept_res = kept["residual"]
+            better = (now == _INACCURATE) | (now == _MAX_ITER)
+            better &= (kept_res <= tols["final_tol"]) & (kept_res < out.residual[idx])
+            if better.any():
+                rows = idx[better]
+                for name in lanes.IPMResult.OUTPUTS:
+                    getattr(out, name)[rows] = kept[name][better]
+                out.status[rows] = _CONVERGED
         status = out.status if len(idx) == len(out.status) else out.status[idx]  # (idx is all of them, or sorted)
         if not np.count_nonzero(status):
             break
         idx = idx[(status == _INACCURATE) | (status == _MAX_ITER)]
         if not len(idx):
             break
+        kept = {name: getattr(out, name)[idx] for name in lanes.IPMResult.OUTPUTS}  # (copies: fancy indexing)

@@ -19,6 +19,9 @@
 
 namespace NS {
 
+// Halvings of a polishing Newton step that does not lower the residual, before polishing stops.
+constexpr int DAMPING = 4;
+
 // The exact conditions of one group: reduced matrix and its LU factors, per-cone coefficients, residuals.
 template <int D>
 struct Exact {
@@ -83,6 +86,13 @@ static inline M weak_cone(const V* s, const V* lam) {
   V ns = splat(0.0), nl = splat(0.0);
   for (int i = 0; i < D; i++) ns += s[i] * s[i], nl += lam[i] * lam[i];
   return vsqrt(nl) <= WEAK_TOL * vmax(splat(1.0), vsqrt(ns));
+}
+
+// max(1, ‖z‖∞) (z: n), the scale of the residuals.
+static inline V size_of(const V* z, int n) {
+  V m = splat(1.0);
+  for (int i = 0; i < n; i++) m = vmax(m, vabs(z[i]));
+  return m;
 }
 
 // Exact KKT residuals (complementarity s∘λ = 0) at (z, s, λ) into r_*, comp_*; returns their max relative to
@@ -495,24 +505,52 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
     V nw = kkt_residual(w, w.h_l, e.zt, e.slt, e.llt, e.sqt, e.lqt, e.t_z, e.t_l, e.t_q, e.tc_l, e.tc_q);
     M acc = run & (nw < res);
     M rej = run & ~acc;
-    run &= ~(rej & fresh);  // a fresh Newton step that does not help: done
-    factored &= ~rej;       // a chord step that does not help: refactorise at the current point
+    factored &= ~rej;  // a chord step that does not help: refactorise at the current point
     factored &= ~(acc & ~fresh & (nw > 1e-2 * res));
-    res = sel(acc, nw, res);
-    for (int i = 0; i < n; i++) {
-      z[i] = sel(acc, e.zt[i], z[i]);
-      s_q[i] = sel(acc, e.sqt[i], s_q[i]);
-      lam_q[i] = sel(acc, e.lqt[i], lam_q[i]);
-      e.r_z[i] = sel(acc, e.t_z[i], e.r_z[i]);
-      e.r_q[i] = sel(acc, e.t_q[i], e.r_q[i]);
-      e.comp_q[i] = sel(acc, e.tc_q[i], e.comp_q[i]);
+    auto commit = [&](M m, V value) {  // the trial point becomes the current one in the lanes of m
+      res = sel(m, value, res);
+      for (int i = 0; i < n; i++) {
+        z[i] = sel(m, e.zt[i], z[i]);
+        s_q[i] = sel(m, e.sqt[i], s_q[i]);
+        lam_q[i] = sel(m, e.lqt[i], lam_q[i]);
+        e.r_z[i] = sel(m, e.t_z[i], e.r_z[i]);
+        e.r_q[i] = sel(m, e.t_q[i], e.r_q[i]);
+        e.comp_q[i] = sel(m, e.tc_q[i], e.comp_q[i]);
+      }
+      for (int k = 0; k < K; k++) {
+        s_l[k] = sel(m, e.slt[k], s_l[k]);
+        lam_l[k] = sel(m, e.llt[k], lam_l[k]);
+        e.r_l[k] = sel(m, e.t_l[k], e.r_l[k]);
+        e.comp_l[k] = sel(m, e.tc_l[k], e.comp_l[k]);
+      }
+    };
+    commit(acc, nw);
+    // a fresh Newton step that does not help: shorter steps along it (halved up to DAMPING times; the next step
+    // from new factors), else done.  A shorter step must lower the residual itself, not only relative to ‖z‖∞
+    // (which a step along an unbounded ray would do by growing z).
+    M damp = rej & fresh;
+    V alpha = splat(1.0);
+    const V now = res * size_of(z, n);
+    for (int h = 0; h < DAMPING && any(damp); h++) {
+      alpha *= 0.5;
+      for (int i = 0; i < n; i++) e.zt[i] = z[i] + alpha * dx[i];
+      for (int k = 0; k < K; k++) {
+        M ul = w.onl[k];
+        e.llt[k] = sel(ul, lam_l[k] + alpha * dx[n + k], lam_l[k]);
+        e.slt[k] = sel(ul, s_l[k] + alpha * (dx[k * D] - e.r_l[k]), s_l[k]);
+        for (int i = 0; i < D; i++) {
+          int r = k * D + i;
+          e.lqt[r] = sel(w.on[k], lam_q[r] + alpha * dx[N + r], lam_q[r]);
+          e.sqt[r] = sel(w.on[k], s_q[r] + alpha * (dx[r] - e.r_q[r]), s_q[r]);
+        }
+      }
+      V nd = kkt_residual(w, w.h_l, e.zt, e.slt, e.llt, e.sqt, e.lqt, e.t_z, e.t_l, e.t_q, e.tc_l, e.tc_q);
+      M better = damp & (nd * size_of(e.zt, n) < now);
+      commit(better, nd);
+      factored &= ~better;
+      damp &= ~better;
     }
-    for (int k = 0; k < K; k++) {
-      s_l[k] = sel(acc, e.slt[k], s_l[k]);
-      lam_l[k] = sel(acc, e.llt[k], lam_l[k]);
-      e.r_l[k] = sel(acc, e.t_l[k], e.r_l[k]);
-      e.comp_l[k] = sel(acc, e.tc_l[k], e.comp_l[k]);
-    }
+    run &= ~damp;
   }
   return res;
 }
