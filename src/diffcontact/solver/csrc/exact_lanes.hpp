@@ -19,8 +19,11 @@
 
 namespace NS {
 
-// Halvings of a polishing Newton step that does not lower the residual, before polishing stops.
+// Halvings of a polishing Newton step that does not lower the residual, before polishing stops; only near a
+// solution (residual at most DAMP_BELOW): from farther, the interior-point point is not near one by the exact
+// measure (as where the scaling's size estimate is far off), and the retries take over.
 constexpr int DAMPING = 4;
+constexpr double DAMP_BELOW = 1e-3;
 
 // The exact conditions of one group: reduced matrix and its LU factors, per-cone coefficients, residuals.
 template <int D>
@@ -528,7 +531,7 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
     // a fresh Newton step that does not help: shorter steps along it (halved up to DAMPING times; the next step
     // from new factors), else done.  A shorter step must lower the residual itself, not only relative to ‖z‖∞
     // (which a step along an unbounded ray would do by growing z).
-    M damp = rej & fresh;
+    M damp = rej & fresh & (res <= DAMP_BELOW);
     V alpha = splat(1.0);
     const V now = res * size_of(z, n);
     for (int h = 0; h < DAMPING && any(damp); h++) {
