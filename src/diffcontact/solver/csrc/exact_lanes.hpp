@@ -91,13 +91,6 @@ static inline M weak_cone(const V* s, const V* lam) {
   return vsqrt(nl) <= WEAK_TOL * vmax(splat(1.0), vsqrt(ns));
 }
 
-// max(1, ‖z‖∞) (z: n), the scale of the residuals.
-static inline V size_of(const V* z, int n) {
-  V m = splat(1.0);
-  for (int i = 0; i < n; i++) m = vmax(m, vabs(z[i]));
-  return m;
-}
-
 // Exact KKT residuals (complementarity s∘λ = 0) at (z, s, λ) into r_*, comp_*; returns their max relative to
 // max(1, ‖z‖∞), counting any violation of the cones as well.
 template <int D>
@@ -105,9 +98,9 @@ static V kkt_residual(const Work<D>& w, const V* h_l, const V* z, const V* s_l, 
                       const V* lam_q, V* r_z, V* r_l, V* r_q, V* comp_l, V* comp_q) {
   const int K = w.K, n = w.n;
   const V zero = splat(0.0);
-  V zmax = splat(1.0), worst = zero;
+  V worst = zero;
   matvec<false>(n, w.P, z, [&](int i) { return w.c[i]; }, [&](int i, V t) { r_z[i] = t; });
-  for (int i = 0; i < n; i++) zmax = vmax(zmax, vabs(z[i]));
+  const V zmax = size_of(z, n);
   for (int k = 0; k < K; k++) {
     M ul = w.onl[k], uq = w.on[k];
     r_z[k * D] -= sel(ul, lam_l[k], zero);
@@ -534,7 +527,7 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
     M damp = rej & fresh & (res <= DAMP_BELOW);
     V alpha = splat(1.0);
     const V now = res * size_of(z, n);
-    for (int h = 0; h < DAMPING && any(damp); h++) {
+    for (int h = 0; h < DAMPING && any(damp); h++) {  // (the full step's own formulas are kept above, bit for bit)
       alpha *= 0.5;
       for (int i = 0; i < n; i++) e.zt[i] = z[i] + alpha * dx[i];
       for (int k = 0; k < K; k++) {

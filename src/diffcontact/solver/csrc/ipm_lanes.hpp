@@ -39,6 +39,13 @@ static inline V sel(M m, V a, V b) { return m ? a : b; }
 static inline V sel(M m, V a, double b) { return m ? a : splat(b); }
 static inline V sel(M m, double a, V b) { return m ? splat(a) : b; }
 
+// max(1, ‖z‖∞) (z: n), the scale the residuals are relative to.
+static inline V size_of(const V* z, int n) {
+  V m = splat(1.0);
+  for (int i = 0; i < n; i++) m = vmax(m, vabs(z[i]));
+  return m;
+}
+
 extern "C" int posix_memalign(void** ptr, __SIZE_TYPE__ alignment, __SIZE_TYPE__ size);
 extern "C" void free(void* ptr);
 
@@ -474,9 +481,8 @@ STAGE V residuals(Work<D>& w, Loop& s, V& pres, V& dres) {
   const int K = w.K, n = w.n;
   const bool soc = D > 1;
   const V zero = splat(0.0);
-  V zmax = splat(1.0);
   matvec<false>(n, w.P, w.z, [&](int i) { return w.c[i]; }, [&](int i, V t) { w.r_z[i] = t; });
-  for (int i = 0; i < n; i++) zmax = vmax(zmax, vabs(w.z[i]));
+  const V zmax = size_of(w.z, n);
   V gap = zero;
   pres = zero;
   for (int k = 0; k < K; k++) {

@@ -7,8 +7,6 @@
 
 namespace NS {
 
-int lanes() { return LANES; }
-
 // P = T·A·T of the group's elements (api.h), c, the cones and rays in use and the rays' bounds (as −low in h_l).
 template <int D>
 static void gather_problem(Work<D>& w, const i64* b, const double* A, const double* T, const double* c,

@@ -13,7 +13,6 @@
 
 #define DECLARE(NS)                                         \
   namespace NS {                                            \
-  int lanes();                                              \
   int solve(const SolveArgs& a, i64 start, i64 stop);       \
   int adjoint(const AdjointArgs& a, i64 start, i64 stop);   \
   int flat(const FlatArgs& a, i64 start, i64 stop);         \
@@ -27,7 +26,6 @@ DECLARE(isa_avx512)
 static int (*solve_fn)(const SolveArgs&, i64, i64) = isa_base::solve;
 static int (*adjoint_fn)(const AdjointArgs&, i64, i64) = isa_base::adjoint;
 static int (*flat_fn)(const FlatArgs&, i64, i64) = isa_base::flat;
-static int width = 2;
 
 // Lane widths this CPU can run, best first: a bit set of 8, 4, 2.
 static int supported_widths() {
@@ -226,12 +224,8 @@ static PyObject* py_select(PyObject*, PyObject* const* args, Py_ssize_t nargs) {
   if (w == 4) solve_fn = isa_avx2::solve, adjoint_fn = isa_avx2::adjoint, flat_fn = isa_avx2::flat;
 #endif
   if (w == 2) solve_fn = isa_base::solve, adjoint_fn = isa_base::adjoint, flat_fn = isa_base::flat;
-  width = (int)w;
-  return PyLong_FromLong(width);
+  return PyLong_FromLong((long)w);
 }
-
-// width() -> int: the lane width in use.
-static PyObject* py_width(PyObject*, PyObject* const*, Py_ssize_t) { return PyLong_FromLong(width); }
 
 #define FAST(name, fn, doc) {name, (PyCFunction)(void (*)(void))fn, METH_FASTCALL, doc}
 static PyMethodDef methods[] = {
@@ -241,7 +235,6 @@ static PyMethodDef methods[] = {
     FAST("constants", py_constants, "The facts of api.h lanes.py checks."),
     FAST("supported", py_supported, "Lane widths this CPU runs, as a bit set."),
     FAST("select", py_select, "Use the kernel of this lane width."),
-    FAST("width", py_width, "The lane width in use."),
     {nullptr, nullptr, 0, nullptr},
 };
 
