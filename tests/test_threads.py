@@ -165,6 +165,22 @@ def test_bench_train_on_a_small_task(tmp_path, restore_threads):
     assert res.exit_code == 2 and "model = 'XX' is not one of" in res.output
 
 
+def test_bench_train_flags_a_step_without_contacts_slower_than_with_them():
+    """The contact model's share is the difference of two timed steps; where the step without contacts is the
+    slower one (a disturbed measurement), the row says so instead of reporting a share of 0."""
+    from diffcontact.bench.train import time_model
+
+    class Timer:
+        baseline = False
+
+        def step(self, contacts=True):
+            t = 0.09 if contacts else 0.10
+            return {"forward": t / 2, "backward": t / 2, "optimiser": 0.002, "contact_fwd": 0.02, "cpu": t}
+
+    row = time_model(Timer(), warmup=0, repeats=3, busy=[])
+    assert row["disturbed"] and row["contact"] == 0.0
+
+
 def test_busy_processes_die_with_the_benchmark_even_if_it_is_killed():
     code = (
         "import signal, time\n"

@@ -11,6 +11,10 @@ The parts are
   backward); "contact fwd" is its forward part measured directly;
 - optimiser.
 
+A step without contacts that takes longer than the step with them (which does that work and more) marks a disturbed
+measurement: the row is flagged (``disturbed``), its contact shares are printed as "–" and a note after the table
+names it, instead of a share of 0.
+
 Wall times suffer most from other processes on a shared machine; the process's CPU time of the step (all its
 threads) much less, so the table also gives the step's CPU time and the contact model's share of it (CPU time with
 contacts minus without, over with).
@@ -196,8 +200,12 @@ def time_model(timer: StepTimer, warmup: int, repeats: int, busy: list[subproces
         row["cpu_no_contacts"] = _median(bare, "cpu")
         row["contact_share_cpu"] = max(row["cpu"] - row["cpu_no_contacts"], 0.0) / row["cpu"]
         row["dynamics"] = fb_bare
-        row["contact"] = max(_step(full, ("forward", "backward")) - fb_bare, 0.0)
+        contact = _step(full, ("forward", "backward")) - fb_bare
+        row["contact"] = max(contact, 0.0)
         row["contact_share"] = row["contact"] / row["step"]
+        # the step without contacts slower than with them: impossible for the work done, so a disturbed measurement
+        # (reported, not hidden behind a share of 0)
+        row["disturbed"] = contact < 0 or row["cpu"] < row["cpu_no_contacts"]
     if loaded:
         row["step_busy"] = _step(loaded)
         row["busy_ratio"] = row["step_busy"] / row["step"]
@@ -259,7 +267,7 @@ def run_train_benchmark(
         cols += f" step beside {busy} busy | slowdown |"
     echo(cols)
     echo("|" + "---|" * (cols.count("|") - 1))
-    rows = []
+    rows, disturbed = [], []
     procs = start_busy(busy) if busy else []
     try:
         signal_all(procs, signal.SIGSTOP)
@@ -274,17 +282,25 @@ def run_train_benchmark(
                     f"| {name} | {model} | {colliding:.0%} | {_ms(row['step'])} | {_ms(row['cpu'])} | "
                     f"{_ms(row.get('dynamics'))} | "
                     f"{_ms(row.get('contact'))} | {_ms(row['optimiser'])} | "
-                    + ("–" if "contact_share" not in row else f"{row['contact_share']:.0%}")
+                    + ("–" if "contact_share" not in row or row["disturbed"] else f"{row['contact_share']:.0%}")
                     + f" | {_ms(row.get('step_no_contacts'))} | "
                     + f"{_ms(None if timer.baseline else row['contact_fwd'])} | "
-                    + ("–" if "contact_share_cpu" not in row else f"{row['contact_share_cpu']:.0%}")
+                    + ("–" if "contact_share_cpu" not in row or row["disturbed"] else f"{row['contact_share_cpu']:.0%}")
                     + " |"
                 )
                 if busy:
                     line += f" {_ms(row['step_busy'])} | {row['busy_ratio']:.2f}× |"
                 echo(line)
+                if row.get("disturbed"):
+                    disturbed.append(
+                        f"{name} {model}: the step without contacts ({_ms(row['step_no_contacts'])} ms) took longer "
+                        f"than the step with them ({_ms(row['step'])} ms), a disturbed measurement: its contact "
+                        "share is not reported (–); run the benchmark again for that row"
+                    )
     finally:
         stop_busy(procs)
+    for note in disturbed:
+        echo(note)
     header["load_average_after"] = list(os.getloadavg())
     echo(f"load average after: {header['load_average_after'][0]:.2f}")
     result = {"header": header, "rows": rows}
