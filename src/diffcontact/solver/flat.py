@@ -52,7 +52,7 @@ import torch
 
 from diffcontact.errors import IndefiniteMatrixError
 from diffcontact.solver import lanes
-from diffcontact.solver.status import Status
+from diffcontact.solver.status import FIRST_FAILURE, Status
 
 Q_TOL = 0.1  # ... up to this, drift of the constraint velocities, dropped where a flat direction enters the cones
 # a set of minimisers narrower than this (relative) is a point (along a line tangent to a cone, rounding alone
@@ -63,10 +63,17 @@ RHO, RHO_MAX = 1e4, 1e5
 ALM_STEPS = 20
 ALM_TOL = 1e-13  # relative miss of the equality at convergence
 ALM_ACCEPT = 1e-9  # ... below which an iterate counts as a minimiser
-# a stall up to this relative miss, having moved ALM_FAR times farther than that from its start, is the inner
-# solves' accuracy (their KKT tolerance times the penalty's conditioning; measured up to 9e-8), not a set that is a
-# point (there the iterates creep towards the start: 6–200 times their miss in the solver's accuracy tests)
+# an iterate that stalls ALM_FAR times farther from its start than its relative miss is not at a point (there the
+# iterates creep towards the start: 6–200 times their miss in the solver's accuracy tests); it steps on until its
+# miss is below ALM_FLOOR (the inner solves' accuracy at RHO_MAX: measured up to 2e-7), then a proximal step
+# (PROX, below) makes it a minimiser
 ALM_FLOOR, ALM_FAR = 1e-7, 1e4
+# parts of a unit flat direction up to this are the eigensolver's rounding (≈ eps·ref / gap ≤ eps / τ ≈ 2e-10:
+# the eigenvalues that are not flat lie above τ·ref)
+V_ROUNDING = 1e-9
+# the proximal step that finishes a stalled least-norm stage: curvature relative to ref (its pull adds ≈ PROX times
+# the iterate's miss to the residual)
+PROX = 1e-10
 
 
 @functools.cache
@@ -261,7 +268,7 @@ def centre_on(A, q, flat: FlatSet, sel, f_star):
     return A, q
 
 
-def minimum_norm(f, flat: FlatSet, mu, lower, active, d, solve, sel=None):
+def minimum_norm(f, flat: FlatSet, mu, lower, active, d, solve, problem, sel=None):
     """Move the minimisers f of the elements in ``flat`` whose q had no flat part to the minimiser of least norm.
 
     Every minimiser has the range part r = Π_R f (Π_R = I − Π_N); the others are r + v, v in the flat space, inside
@@ -273,8 +280,9 @@ def minimum_norm(f, flat: FlatSet, mu, lower, active, d, solve, sel=None):
     about 1 + ``RHO`` per step, to the solver's accuracy.  Differentiable (torch operations and ``solve``).
 
     f: (B, n) float64; mu, lower: (B, K); active: (B, K) bool; solve(idx, A, q) → (g, status): the cone QP of the
-    batch elements idx (m,) with A (m, n, n) and q (m, n), differentiable; sel: (m,) bool, the elements of ``flat``
-    to treat (default: the consistent ones).  Returns f with those rows replaced and the status of their
+    batch elements idx (m,) with A (m, n, n) and q (m, n), differentiable; problem: (A, q) of the batch, the
+    problem (flat parts resolved) whose minimisers f are; sel: (m,) bool, the elements of ``flat`` to treat (default:
+    the consistent ones).  Returns f with those rows replaced and the status of their
     least-norm stage ((m',) ``Status`` codes, in their order; 0 where it is in closed form).
     """
     sel = flat.consistent if sel is None else sel
@@ -287,7 +295,7 @@ def minimum_norm(f, flat: FlatSet, mu, lower, active, d, solve, sel=None):
     several = sel & (nullity > 1)
     if several.any():
         idx = flat.idx[several]
-        x, status[several], _ = _least_norm_several(idx, f[idx], flat.PiN[several], solve)
+        x, status[several], _ = _least_norm_several(idx, f[idx], flat.PiN[several], solve, problem)
         f = f.index_copy(0, idx, x)
     return f, status[sel]
 
@@ -327,6 +335,12 @@ def _least_norm_one(x, PiN, mu, lower, active, d):
     j = torch.diagonal(PiN, dim1=-2, dim2=-1).argmax(-1)
     v = PiN.gather(-1, j[:, None, None].expand(-1, x.shape[-1], 1))[..., 0]
     v = v / v.norm(dim=-1, keepdim=True)
+    # a contact's part of v at the eigensolver's rounding is zero: near a cone's apex or face, those parts alone
+    # (1e-17) set the interval's ends by ratios of rounding (a contact at its bound cut the move to 4 % of its
+    # length, or to nothing, depending on the batch); moved by them the contact would change by less than rounding
+    m, n = x.shape
+    vk = v.view(m, -1, d)
+    v = torch.where(vk.detach().abs().amax(-1, keepdim=True) <= V_ROUNDING, 0.0, vk).view(m, n)
     lo, hi = _line_interval(x, v, mu, lower, active, d)
     scale = start.abs().amax(-1).clamp_min(1.0)
     # a line that only touches the cones (tangent: its ends known to the square root of rounding) is no step
@@ -339,7 +353,7 @@ def _least_norm_one(x, PiN, mu, lower, active, d):
     return x + torch.where(spread, t, 0.0)[:, None] * v, spread, inner
 
 
-def _least_norm_several(idx, x, PiN, solve):
+def _least_norm_several(idx, x, PiN, solve, problem=None):
     """The least-norm point g of the cones with Π_R g = Π_R x (m elements, several flat directions): the augmented
     Lagrangian method on the equality, min ½‖g‖² + ½ρ‖Π_R g − w‖² over the cones with the target w moved by the
     miss Π_R x − Π_R g after each solve (the multiplier ρ(w − Π_R x) in disguise).  The penalised problem is strictly
@@ -352,13 +366,18 @@ def _least_norm_several(idx, x, PiN, solve):
     Where the set of minimisers is a single point (the cones touch the flat space only there) the method stalls
     (its miss falls sublinearly); an element stops once its miss, falling at its last rate at ρ = RHO_MAX for the
     steps left, would not reach ALM_TOL (it ends as the remaining steps would, in 4–5 solves instead of
-    ALM_STEPS on BP5's training problems).  An element that has not converged keeps x, and is reported INACCURATE
-    if its last iterate was a minimiser (miss ≤ ALM_ACCEPT) away from x (the set is not a point, and x is not its
-    least-norm point).  One that stalled at the inner solves' accuracy (miss ≤ ALM_FLOOR, ALM_FAR times smaller
-    than its distance from x) takes its last iterate, reported INACCURATE.  An element whose least-norm point is
-    within UNIQUE_TOL·max(1, ‖x‖∞) of x keeps x (a set that is a point up to that).  Returns
-    g (m, n), status (m,) (of its last solve where g is not x, else 0 or INACCURATE) and moved (m,) bool: g is
-    not x."""
+    ALM_STEPS on BP5's training problems).  An element whose iterate stalls ALM_FAR times farther from x than its
+    miss is not at a point: there x is not the least-norm minimiser, and the iterate, near it but a minimiser only
+    to its miss (measured up to 2e-7: the inner solves' accuracy at ρ = RHO_MAX, where the cones' faces are nearly
+    parallel to the equality), steps on to ALM_FLOOR; it is then finished by one proximal step on the problem
+    (``problem``: min ½fᵀAf + qᵀf + ½ε‖f − g‖², ε = PROX·max A_ii), which returns the minimiser next to it (to
+    rounding: the pull adds ε times the miss), reported with that solve's status where the miss had reached
+    ALM_FLOOR, else INACCURATE (a minimiser whose norm is least only to the miss); without ``problem`` (or where
+    that step fails) it keeps x, INACCURATE.  Any other element that has not converged keeps x: reported INACCURATE
+    if its last iterate was a minimiser (miss ≤ ALM_ACCEPT) away from x, else 0 (the set is a point: x).  An
+    element whose least-norm point is within UNIQUE_TOL·max(1, ‖x‖∞) of x keeps x (a set that is a point up to
+    that).  Returns g (m, n), status (m,) (of its last solve where g is not x, else 0 or INACCURATE) and moved
+    (m,) bool: the set of minimisers is not a point (g is not x, but where the proximal step failed)."""
     m, n = x.shape
     eye = torch.eye(n, dtype=x.dtype)
     PiR = eye - PiN
@@ -383,6 +402,10 @@ def _least_norm_several(idx, x, PiN, solve):
         # the tolerance at the end (the rate only worsens where the set is a point: the miss falls sublinearly)
         left = ALM_STEPS - 1 - step
         stalled = live & steady & (size * (size / before).clamp_max(1.0) ** left > ALM_TOL * scale)
+        # ... but an iterate far from x (the set is not a point) steps on until it is a minimiser to the inner
+        # solves' accuracy (ALM_FLOOR): x is not the least-norm point there
+        far = (g.detach() - x.detach()).abs().amax(-1) >= ALM_FAR * size
+        stalled = stalled & ~(far & (size > ALM_FLOOR * scale))
         unconverged, live = unconverged | stalled, live & ~stalled
         if not live.any():
             break
@@ -394,11 +417,22 @@ def _least_norm_several(idx, x, PiN, solve):
     unconverged = unconverged | live
     dist = (g.detach() - x.detach()).abs().amax(-1)
     moved = dist > UNIQUE_TOL * scale
-    floor = unconverged & moved & (size <= ALM_FLOOR * scale) & (dist >= ALM_FAR * size)
+    far = unconverged & moved & (dist >= ALM_FAR * size)
     short = unconverged & moved & (size <= ALM_ACCEPT * scale)
-    status = torch.where(moved & ~unconverged, status, torch.where(short | floor, Status.INACCURATE, 0))
-    moved = moved & (~unconverged | floor)
-    return torch.where(moved[:, None], g, x), status, moved
+    status = torch.where(moved & ~unconverged, status, torch.where(short | far, Status.INACCURATE, 0))
+    taken = moved & ~unconverged
+    if problem is not None and far.any():
+        at = far.nonzero().flatten()
+        A, q = problem[0][idx[at]], problem[1][idx[at]]
+        eps = PROX * A.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(x.dtype).tiny)
+        g_at, prox_status = solve(idx[at], A + eps[:, None, None] * eye, q - eps[:, None] * g[at])
+        ok = prox_status < FIRST_FAILURE
+        at, g_at, prox_status = at[ok], g_at[ok], prox_status[ok]
+        g = g.index_copy(0, at, g_at)
+        floor = size[at] <= ALM_FLOOR * scale[at]
+        status[at] = torch.where(floor, prox_status, prox_status.clamp_min(Status.INACCURATE))
+        taken[at] = True
+    return torch.where(taken[:, None], g, x), status, moved & (~unconverged | far)
 
 
 def _line_interval(f, v, mu, lower, active, d):

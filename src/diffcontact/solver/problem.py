@@ -494,6 +494,7 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     """
     # (the flat stage in float64 whatever the input: μ² of a float32 μ ≥ 2e19 overflows, NaN in its gradient)
     mu, lower = mu.to(torch.float64), lower.to(torch.float64)
+    problem = A, q  # (whose minimisers are sought; A, q below may be centred)
     if torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower)):
         sub = flats.idx[flats.consistent]
         with torch.no_grad():
@@ -523,7 +524,8 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
         f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
         treated = flats.consistent
         f = _near_least_norm(A, q, mu, lower, active, d, flats, f, result.status, opts)
-    f, status = flat.minimum_norm(f, flats, mu, lower, active, d, _cone_qp(mu, lower, active, d, opts), sel=treated)
+    solve = _cone_qp(mu, lower, active, d, opts)
+    f, status = flat.minimum_norm(f, flats, mu, lower, active, d, solve, problem, sel=treated)
     rows = flats.idx[treated].numpy()
     result.status[rows] = np.maximum(result.status[rows], status.numpy())
     # (a failed element's zeros may have been moved along its flat directions)
