@@ -52,7 +52,7 @@ import torch
 
 from diffcontact.errors import IndefiniteMatrixError
 from diffcontact.solver import lanes
-from diffcontact.solver.status import FIRST_FAILURE, Status
+from diffcontact.solver.status import Status, is_failure
 
 Q_TOL = 0.1  # ... up to this, drift of the constraint velocities, dropped where a flat direction enters the cones
 # a set of minimisers narrower than this (relative) is a point (along a line tangent to a cone, rounding alone
@@ -426,7 +426,7 @@ def _least_norm_several(idx, x, PiN, solve, problem=None):
         A, q = problem[0][idx[at]], problem[1][idx[at]]
         eps = PROX * A.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(x.dtype).tiny)
         g_at, prox_status = solve(idx[at], A + eps[:, None, None] * eye, q - eps[:, None] * g[at])
-        ok = prox_status < FIRST_FAILURE
+        ok = ~is_failure(prox_status)
         at, g_at, prox_status = at[ok], g_at[ok], prox_status[ok]
         g = g.index_copy(0, at, g_at)
         floor = size[at] <= ALM_FLOOR * scale[at]
