@@ -438,6 +438,47 @@ static void solve_full(Exact<D>& e, const Work<D>& w, const V* b, V* x, bool tra
   }
 }
 
+// The Newton step from (z, s_l, λ_l, s_q, λ_q), whose residuals are in e.r_*, e.comp_*, with the factors in e.R:
+// the step into e.dx, the trial point into e.zt, e.slt, e.llt, e.sqt, e.lqt.
+template <int D>
+static void newton_trial(Exact<D>& e, const Work<D>& w, const V* z, const V* s_l, const V* lam_l, const V* s_q,
+                         const V* lam_q, M use_weak) {
+  const int K = e.K, n = e.n, N = e.N;
+  const V zero = splat(0.0);
+  // right-hand side: −residuals, complementarity linearised with its primal residual
+  V* b = e.x;
+  for (int i = 0; i < n; i++) b[i] = -e.r_z[i];
+  for (int k = 0; k < K; k++) {
+    V ray = -e.comp_l[k] + lam_l[k] * e.r_l[k];
+    b[n + k] = sel(w.onl[k], sel(use_weak & weak_ray(s_l[k], lam_l[k]), -lam_l[k], ray), zero);
+    M weak = use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
+    for (int i = 0; i < D; i++) {
+      int r = k * D + i;
+      V lr;
+      if (i == 0) {
+        lr = zero;
+        for (int j = 0; j < D; j++) lr += lam_q[k * D + j] * e.r_q[k * D + j];
+      } else {
+        lr = lam_q[k * D] * e.r_q[r] + lam_q[r] * e.r_q[k * D];
+      }
+      b[N + r] = sel(w.on[k], sel(weak, -lam_q[r], -e.comp_q[r] + lr), zero);
+    }
+  }
+  V* dx = e.dx;
+  solve_full(e, w, b, dx, false);
+  for (int i = 0; i < n; i++) e.zt[i] = z[i] + dx[i];
+  for (int k = 0; k < K; k++) {
+    M ul = w.onl[k];
+    e.llt[k] = sel(ul, lam_l[k] + dx[n + k], lam_l[k]);
+    e.slt[k] = sel(ul, s_l[k] - e.r_l[k] + dx[k * D], s_l[k]);
+    for (int i = 0; i < D; i++) {
+      int r = k * D + i;
+      e.lqt[r] = sel(w.on[k], lam_q[r] + dx[N + r], lam_q[r]);
+      e.sqt[r] = sel(w.on[k], s_q[r] - e.r_q[r] + dx[r], s_q[r]);
+    }
+  }
+}
+
 // Newton steps (at most `steps` factorisations) from the iterate in w (z, s_l, …) in the lanes of `run`; the
 // factors are reused for chord steps while the residual falls by 100× per step.  Returns the exact KKT residual of
 // each lane's returned point.
@@ -466,38 +507,8 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
       factored |= fresh;
       if (!any(run)) break;
     }
-    // right-hand side: −residuals, complementarity linearised with its primal residual
-    V* b = e.x;
-    for (int i = 0; i < n; i++) b[i] = -e.r_z[i];
-    for (int k = 0; k < K; k++) {
-      V ray = -e.comp_l[k] + lam_l[k] * e.r_l[k];
-      b[n + k] = sel(w.onl[k], sel(use_weak & weak_ray(s_l[k], lam_l[k]), -lam_l[k], ray), zero);
-      M weak = use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
-      for (int i = 0; i < D; i++) {
-        int r = k * D + i;
-        V lr;
-        if (i == 0) {
-          lr = zero;
-          for (int j = 0; j < D; j++) lr += lam_q[k * D + j] * e.r_q[k * D + j];
-        } else {
-          lr = lam_q[k * D] * e.r_q[r] + lam_q[r] * e.r_q[k * D];
-        }
-        b[N + r] = sel(w.on[k], sel(weak, -lam_q[r], -e.comp_q[r] + lr), zero);
-      }
-    }
-    V* dx = e.dx;
-    solve_full(e, w, b, dx, false);
-    for (int i = 0; i < n; i++) e.zt[i] = z[i] + dx[i];
-    for (int k = 0; k < K; k++) {
-      M ul = w.onl[k];
-      e.llt[k] = sel(ul, lam_l[k] + dx[n + k], lam_l[k]);
-      e.slt[k] = sel(ul, s_l[k] - e.r_l[k] + dx[k * D], s_l[k]);
-      for (int i = 0; i < D; i++) {
-        int r = k * D + i;
-        e.lqt[r] = sel(w.on[k], lam_q[r] + dx[N + r], lam_q[r]);
-        e.sqt[r] = sel(w.on[k], s_q[r] - e.r_q[r] + dx[r], s_q[r]);
-      }
-    }
+    newton_trial(e, w, z, s_l, lam_l, s_q, lam_q, use_weak);
+    const V* dx = e.dx;
     V nw = kkt_residual(w, w.h_l, e.zt, e.slt, e.llt, e.sqt, e.lqt, e.t_z, e.t_l, e.t_q, e.tc_l, e.tc_q);
     M acc = run & (nw < res);
     M rej = run & ~acc;
@@ -505,20 +516,8 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
     factored &= ~(acc & ~fresh & (nw > 1e-2 * res));
     auto commit = [&](M m, V value) {  // the trial point becomes the current one in the lanes of m
       res = sel(m, value, res);
-      for (int i = 0; i < n; i++) {
-        z[i] = sel(m, e.zt[i], z[i]);
-        s_q[i] = sel(m, e.sqt[i], s_q[i]);
-        lam_q[i] = sel(m, e.lqt[i], lam_q[i]);
-        e.r_z[i] = sel(m, e.t_z[i], e.r_z[i]);
-        e.r_q[i] = sel(m, e.t_q[i], e.r_q[i]);
-        e.comp_q[i] = sel(m, e.tc_q[i], e.comp_q[i]);
-      }
-      for (int k = 0; k < K; k++) {
-        s_l[k] = sel(m, e.slt[k], s_l[k]);
-        lam_l[k] = sel(m, e.llt[k], lam_l[k]);
-        e.r_l[k] = sel(m, e.t_l[k], e.r_l[k]);
-        e.comp_l[k] = sel(m, e.tc_l[k], e.comp_l[k]);
-      }
+      take_point(m, n, K, z, s_l, lam_l, s_q, lam_q, e.zt, e.slt, e.llt, e.sqt, e.lqt);
+      take_point(m, n, K, e.r_z, e.r_l, e.comp_l, e.r_q, e.comp_q, e.t_z, e.t_l, e.tc_l, e.t_q, e.tc_q);  // (its residuals)
     };
     commit(acc, nw);
     // a fresh Newton step that does not help: shorter steps along it (halved up to DAMPING times; the next step
@@ -551,11 +550,80 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
   return res;
 }
 
+// Polyhedral cones (D ≤ 2: the rays, and the 2-d cone, which is the orthant of its eigenvalues s0 ± s1): the best
+// iterate moved onto the faces it points to — of each complementary pair (slack and multiplier of a ray; per
+// eigenvalue, those of a cone) the smaller set to 0 — and one Newton step from there.  On the right faces the
+// complementarity's second-order term is 0 along them, so that step solves the problem to rounding.  Where it does
+// not reach rounding level (1e-14), once more with the choices flipped whose kept member the step made negative;
+// where that does not either, the iterate is restored and polishing goes on from it.  (Until then w's loop state
+// holds the iterate and w.e_l, w.e_q the choices: both free after the interior-point method.)
+template <int D>
+static void faces_step(Exact<D>& e, Work<D>& w, M run) {
+  const int K = e.K, n = e.n;
+  const V zero = splat(0.0), half = splat(0.5);
+  const M none = M{} != 0, all = M{} == 0;
+  M *bind_l = (M*)w.e_l, *bind_q = (M*)w.e_q;  // the slack is the 0 of the pair (rays; cones' u = s0 + s1, v = s0 − s1)
+  take_point(all, n, K, w.z, w.s_l, w.lam_l, w.s_q, w.lam_q, w.zb, w.slb, w.llb, w.sqb, w.lqb);
+  for (int k = 0; k < K; k++) {
+    bind_l[k] = w.llb[k] > w.slb[k];
+    if (D == 2) {
+      const V *s = w.sqb + 2 * k, *l = w.lqb + 2 * k;
+      bind_q[2 * k] = l[0] + l[1] > s[0] + s[1];
+      bind_q[2 * k + 1] = l[0] - l[1] > s[0] - s[1];
+    }
+  }
+  M todo = run;
+  for (int attempt = 0; attempt < 2 && any(todo); attempt++) {
+    for (int k = 0; k < K; k++) {  // the iterate moved onto the chosen faces, in the lanes of todo
+      M ul = todo & w.onl[k];
+      w.slb[k] = sel(ul & bind_l[k], zero, sel(ul, w.s_l[k], w.slb[k]));
+      w.llb[k] = sel(ul & ~bind_l[k], zero, sel(ul, w.lam_l[k], w.llb[k]));
+      if (D == 2) {
+        const V *s0 = w.s_q + 2 * k, *l0 = w.lam_q + 2 * k;
+        V *s = w.sqb + 2 * k, *l = w.lqb + 2 * k;
+        const M bu = bind_q[2 * k], bv = bind_q[2 * k + 1], on = todo & w.on[k];
+        V su = sel(bu, zero, s0[0] + s0[1]), sv = sel(bv, zero, s0[0] - s0[1]);
+        V lu = sel(bu, l0[0] + l0[1], zero), lv = sel(bv, l0[0] - l0[1], zero);
+        s[0] = sel(on, half * (su + sv), s[0]), s[1] = sel(on, half * (su - sv), s[1]);
+        l[0] = sel(on, half * (lu + lv), l[0]), l[1] = sel(on, half * (lu - lv), l[1]);
+      }
+    }
+    kkt_residual(w, w.h_l, w.zb, w.slb, w.llb, w.sqb, w.lqb, e.r_z, e.r_l, e.r_q, e.comp_l, e.comp_q);
+    M ok = factor(e, w, w.slb, w.llb, w.sqb, w.lqb, none);
+    keep_factors(e, all);
+    newton_trial(e, w, w.zb, w.slb, w.llb, w.sqb, w.lqb, none);
+    V nw = kkt_residual(w, w.h_l, e.zt, e.slt, e.llt, e.sqt, e.lqt, e.t_z, e.t_l, e.t_q, e.tc_l, e.tc_q);
+    // (at rounding level relative to the iterate's size: a step far along a flat direction is not taken)
+    M good = todo & ok & (nw * size_of(e.zt, n) <= 1e-14 * size_of(w.z, n));
+    take_point(good, n, K, w.zb, w.slb, w.llb, w.sqb, w.lqb, e.zt, e.slt, e.llt, e.sqt, e.lqt);
+    todo &= ok & ~good;
+    const V neg = -1e-13 * size_of(e.zt, n);  // (below 0 by more than rounding)
+    M flipped = none;
+    for (int k = 0; k < K; k++) {
+      M f = todo & w.onl[k] & (bind_l[k] ? (e.llt[k] < neg) : (e.slt[k] < neg));
+      bind_l[k] ^= f, flipped |= f;
+      if (D == 2) {
+        const V *s = e.sqt + 2 * k, *l = e.lqt + 2 * k;
+        M& bu = bind_q[2 * k];
+        M& bv = bind_q[2 * k + 1];
+        M fu = todo & w.on[k] & (bu ? (l[0] + l[1] < neg) : (s[0] + s[1] < neg));
+        M fv = todo & w.on[k] & (bv ? (l[0] - l[1] < neg) : (s[0] - s[1] < neg));
+        bu ^= fu, bv ^= fv, flipped |= fu | fv;
+      }
+    }
+    todo &= flipped;
+    run &= ~good;
+  }
+  // the iterate back where no step reached rounding level
+  take_point(run, n, K, w.zb, w.slb, w.llb, w.sqb, w.lqb, w.z, w.s_l, w.lam_l, w.s_q, w.lam_q);
+}
+
 // Polish the best iterates of w in the lanes of `run`: a pass with every cone as it is, then, where
 // that does not reach rounding level, a pass with the weakly active cones taken as inactive (which keeps only
 // what lowers the residual).
 template <int D>
 static V polish(Exact<D>& e, Work<D>& w, int steps, M run) {
+  if (D <= 2) faces_step(e, w, run);
   V r = polish_pass(e, w, steps, M{} != 0, run);
   M again = run & (r > 1e-15);
   if (any(again)) {

@@ -46,6 +46,20 @@ static inline V size_of(const V* z, int n) {
   return m;
 }
 
+// The point (z, s_l, λ_l, s_q, λ_q; n and K vectors) set to (z2, …) in the lanes of m.
+static inline void take_point(M m, int n, int K, V* z, V* s_l, V* lam_l, V* s_q, V* lam_q, const V* z2,
+                              const V* s_l2, const V* lam_l2, const V* s_q2, const V* lam_q2) {
+  for (int i = 0; i < n; i++) {
+    z[i] = sel(m, z2[i], z[i]);
+    s_q[i] = sel(m, s_q2[i], s_q[i]);
+    lam_q[i] = sel(m, lam_q2[i], lam_q[i]);
+  }
+  for (int k = 0; k < K; k++) {
+    s_l[k] = sel(m, s_l2[k], s_l[k]);
+    lam_l[k] = sel(m, lam_l2[k], lam_l[k]);
+  }
+}
+
 extern "C" int posix_memalign(void** ptr, __SIZE_TYPE__ alignment, __SIZE_TYPE__ size);
 extern "C" void free(void* ptr);
 
@@ -513,15 +527,7 @@ STAGE void keep_best(Work<D>& w, const SolveArgs& o, Loop& s, V res) {
   M better = s.run & (res < s.best_res);
   if (any(better)) {
     s.best_res = sel(better, res, s.best_res);
-    for (int i = 0; i < n; i++) {
-      w.zb[i] = sel(better, w.z[i], w.zb[i]);
-      w.sqb[i] = sel(better, w.s_q[i], w.sqb[i]);
-      w.lqb[i] = sel(better, w.lam_q[i], w.lqb[i]);
-    }
-    for (int k = 0; k < K; k++) {
-      w.slb[k] = sel(better, w.s_l[k], w.slb[k]);
-      w.llb[k] = sel(better, w.lam_l[k], w.llb[k]);
-    }
+    take_point(better, n, K, w.zb, w.slb, w.llb, w.sqb, w.lqb, w.z, w.s_l, w.lam_l, w.s_q, w.lam_q);
   }
   s.best_age = sel(better, splat(0.0), s.best_age + 1.0);
   M conv = s.run & (res <= o.ipm_tol);
