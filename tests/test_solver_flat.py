@@ -326,3 +326,26 @@ def test_a_pass_keeps_the_previous_answer_where_that_is_nearer():
     obj_scale = max(1.0, abs(obj_ref), np.abs(qb).max() * scale)
     assert abs(0.5 * fb @ Ab @ fb + qb @ fb - obj_ref) <= TOL_OBJ * obj_scale
     assert np.abs(fb - f_min).max() <= 1e-6 * scale
+
+
+@pytest.mark.parametrize("K,d,seed,element", [(3, 2, 1, 98), (3, 2, 291, 126), (8, 1, 2, 128)])
+def test_the_answer_with_gradients_is_the_answer_without(K, d, seed, element):
+    """Degenerate fuzz elements (two flat directions; a contact with a zero row, pushed apart by q) whose first
+    minimiser lies far out and is brought back by the Tikhonov solve (problem._near_least_norm) exactly to the
+    least-norm end of the set.  The gradient path then took the set for a single point (flat.nonunique compares
+    with the least-norm point) and returned another, arbitrary minimiser of its uncentred solve: f_n = 0.27 where
+    the answer is 0, CONVERGED (KKT residual 0.27).  The two minimisers now mark the set as not a point, centred on
+    their midpoint.  (Exposed when polishing reached the Tikhonov minimiser exactly; before, it stopped short.)"""
+    from test_solver_robustness import _degenerate_batch
+
+    A, q, mu, lower, active = _degenerate_batch(torch.Generator().manual_seed(seed), 200, K, d)
+    A, q, mu, lower, active = (t[element : element + 1] for t in (A, q, mu, lower, active))
+    plain = solve_cone_qp(A, q, mu, lower, active)
+    ins = [t.clone().requires_grad_() for t in (A, q, mu, lower)]
+    f, info = solve_cone_qp(*ins, active=active, return_info=True)
+    f = f.detach()
+    assert info.status[0] == Status.CONVERGED
+    assert (f - plain).abs().max() <= 1e-9 * plain.abs().max().clamp_min(1.0)
+    rows = active[0].repeat_interleave(d).numpy()
+    sub = A[0].numpy()[np.ix_(rows, rows)], q[0].numpy()[rows], mu[0].numpy()[active[0]], lower[0].numpy()[active[0]]
+    assert kkt_residual(*sub, f[0].numpy()[rows], d) <= 1e-9
