@@ -349,3 +349,28 @@ def test_the_answer_with_gradients_is_the_answer_without(K, d, seed, element):
     rows = active[0].repeat_interleave(d).numpy()
     sub = A[0].numpy()[np.ix_(rows, rows)], q[0].numpy()[rows], mu[0].numpy()[active[0]], lower[0].numpy()[active[0]]
     assert kkt_residual(*sub, f[0].numpy()[rows], d) <= 1e-9
+
+
+@pytest.mark.parametrize("element", [159, 172, 182])
+def test_a_far_stall_that_is_a_minimiser_already_is_not_moved_by_the_proximal_step(element):
+    """Degenerate fuzz elements (K = 19, d = 2, seed 1; 5–9 flat directions) whose least-norm stage stalls at a miss
+    of about 1e-10, already at the least-norm point, far from its start.  The proximal step (curvature 1e-10 along
+    the flat directions: ill-conditioned) moved such a point by up to 0.23 (norm 49.5627 against the least 49.5605,
+    KKT residual 6.7e-3) once polishing made the stage's inner solves exact; before, the stage stalled elsewhere,
+    0.8e-3 – 1.8e-3 from the least-norm point with a KKT residual of 2e-5 – 9e-5.  A far stall that is a minimiser
+    to ALM_ACCEPT is now taken as it is."""
+    from test_solver_robustness import _degenerate_batch
+
+    K, d = 19, 2
+    A, q, mu, lower, active = _degenerate_batch(torch.Generator().manual_seed(1), 200, K, d)
+    A, q, mu, lower, active = (t[element : element + 1] for t in (A, q, mu, lower, active))
+    f, info = solve_cone_qp(A, q, mu, lower, active, return_info=True)
+    assert info.status[0] == Status.CONVERGED
+    rows = active[0].repeat_interleave(d).numpy()
+    sub = A[0].numpy()[np.ix_(rows, rows)], q[0].numpy()[rows], mu[0].numpy()[active[0]], lower[0].numpy()[active[0]]
+    f_ref, _ = clarabel_solve(*sub, d)
+    f_min = clarabel_min_norm(*sub, d, f_ref)
+    x = f[0].numpy()[rows]
+    assert kkt_residual(*sub, x, d) <= 1e-6
+    assert np.linalg.norm(x) <= np.linalg.norm(f_min) * (1 + 1e-9)
+    assert np.abs(x - f_min).max() <= 1e-4 * np.abs(f_min).max()
