@@ -357,8 +357,9 @@ def test_a_far_stall_that_is_a_minimiser_already_is_not_moved_by_the_proximal_st
     of about 1e-10, already at the least-norm point, far from its start.  The proximal step (curvature 1e-10 along
     the flat directions: ill-conditioned) moved such a point by up to 0.23 (norm 49.5627 against the least 49.5605,
     KKT residual 6.7e-3) once polishing made the stage's inner solves exact; before, the stage stalled elsewhere,
-    0.8e-3 – 1.8e-3 from the least-norm point with a KKT residual of 2e-5 – 9e-5.  A far stall that is a minimiser
-    to ALM_ACCEPT is now taken as it is."""
+    0.8e-3 – 1.8e-3 from the least-norm point with a KKT residual of 2e-5 – 9e-5.  Where the step raises the norm, a
+    far stall that is a minimiser to ALM_ACCEPT is now kept as it is (where it lowers it, as for element 157 of
+    K = 19, d = 1, the step corrects the range part inherited from a start far out, and is taken)."""
     from test_solver_robustness import _degenerate_batch
 
     K, d = 19, 2

@@ -369,13 +369,14 @@ def _least_norm_several(idx, x, PiN, solve, problem=None):
     ALM_STEPS on BP5's training problems).  An element whose iterate stalls ALM_FAR times farther from x than its
     miss is not at a point: there x is not the least-norm minimiser, and the iterate, near it but a minimiser only
     to its miss (measured up to 2e-7: the inner solves' accuracy at ρ = RHO_MAX, where the cones' faces are nearly
-    parallel to the equality), steps on to ALM_FLOOR; it is taken as it is where its miss is at most ALM_ACCEPT
-    (a minimiser to that; with its last solve's status), else finished by one proximal step on the problem
+    parallel to the equality), steps on to ALM_FLOOR; it is then finished by one proximal step on the problem
     (``problem``: min ½fᵀAf + qᵀf + ½ε‖f − g‖², ε = PROX·max A_ii), which returns the minimiser next to it (to
     rounding: the pull adds ε times the miss), reported with that solve's status where the miss had reached
-    ALM_FLOOR, else INACCURATE (a minimiser whose norm is least only to the miss); without ``problem`` (or where
-    that step fails) it keeps x, INACCURATE.  Any other element that has not converged keeps x: reported INACCURATE
-    if its last iterate was a minimiser (miss ≤ ALM_ACCEPT) away from x, else 0 (the set is a point: x).  An
+    ALM_FLOOR, else INACCURATE (a minimiser whose norm is least only to the miss); where that step raises the norm
+    (its error along the flat directions) the iterate is kept if it is a minimiser to ALM_ACCEPT, with its last
+    solve's status; without ``problem`` (or where that step fails) it keeps x, INACCURATE.  Any other element that
+    has not converged keeps x: reported INACCURATE if its last iterate was a minimiser (miss ≤ ALM_ACCEPT) away from
+    x, else 0 (the set is a point: x).  An
     element whose least-norm point is within UNIQUE_TOL·max(1, ‖x‖∞) of x keeps x (a set that is a point up to
     that).  Returns g (m, n), status (m,) (of its last solve where g is not x, else 0 or INACCURATE) and moved
     (m,) bool: the set of minimisers is not a point (g is not x, but where the proximal step failed)."""
@@ -420,25 +421,28 @@ def _least_norm_several(idx, x, PiN, solve, problem=None):
     moved = dist > UNIQUE_TOL * scale
     far = unconverged & moved & (dist >= ALM_FAR * size)
     short = unconverged & moved & (size <= ALM_ACCEPT * scale)
-    # a far stall that is a minimiser to ALM_ACCEPT already is taken as it is: the proximal step, whose curvature
-    # ε along the flat directions makes it ill-conditioned, moves a point only to its residual / ε there (0.23 of
-    # a norm of 50 at a miss of 1.7e-10: degenerate fuzz, K = 19, d = 2, seed 1, element 159)
-    close = far & short
-    status = torch.where((moved & ~unconverged) | close, status, torch.where(short | far, Status.INACCURATE, 0))
-    taken = (moved & ~unconverged) | close
-    far = far & ~close
+    last = status.clone()  # (the last solve's)
+    status = torch.where(moved & ~unconverged, status, torch.where(short | far, Status.INACCURATE, 0))
+    taken = moved & ~unconverged
     if problem is not None and far.any():
         at = far.nonzero().flatten()
         A, q = problem[0][idx[at]], problem[1][idx[at]]
         eps = PROX * A.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(torch.finfo(x.dtype).tiny)
         g_at, prox_status = solve(idx[at], A + eps[:, None, None] * eye, q - eps[:, None] * g[at])
-        ok = ~is_failure(prox_status)
+        # the step corrects the range part (x's, kept by the equality, can be off by x's accuracy at its size), but
+        # its curvature ε makes it ill-conditioned along the flat directions, where it moves a point by its
+        # residual / ε: a larger norm is that error (0.23 of 50 at a miss of 1.7e-10: degenerate fuzz K = 19, d = 2,
+        # seed 1, element 159), and an iterate that is a minimiser to ALM_ACCEPT already is then kept as it is
+        kept = (g_at.detach().norm(dim=-1) > g[at].detach().norm(dim=-1) * (1 + 1e-9)) & short[at]
+        status[at[kept]] = last[at[kept]]
+        taken[at[kept]] = True
+        ok = ~is_failure(prox_status) & ~kept
         at, g_at, prox_status = at[ok], g_at[ok], prox_status[ok]
         g = g.index_copy(0, at, g_at)
         floor = size[at] <= ALM_FLOOR * scale[at]
         status[at] = torch.where(floor, prox_status, prox_status.clamp_min(Status.INACCURATE))
         taken[at] = True
-    return torch.where(taken[:, None], g, x), status, moved & (~unconverged | far | close)
+    return torch.where(taken[:, None], g, x), status, moved & (~unconverged | far)
 
 
 def _line_interval(f, v, mu, lower, active, d):
