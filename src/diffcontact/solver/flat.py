@@ -300,15 +300,19 @@ def minimum_norm(f, flat: FlatSet, mu, lower, active, d, solve, problem, sel=Non
     return f, status[sel]
 
 
-def nonunique(f, flat: FlatSet, mu, lower, active, d, solve):
+def nonunique(f, flat: FlatSet, mu, lower, active, d, solve, first=None):
     """The consistent elements of ``flat`` whose minimisers f (B, n) are not unique, and a minimiser inside their
     set, on which ``centre_on`` centres the problem for a well-posed gradient.  One flat direction: where the line
     along it has width > UNIQUE_TOL·max(1, ‖f‖∞) in the cones (where it only touches the cones at f, a sliding
     contact whose flat direction is tangent to its cone, the minimiser is unique after all); the point halfway from
     the least-norm one to the far end or by max(1, ‖f‖∞).  Several: where the least-norm minimiser is farther than
     that from f, an interior-point solution (which lies away from the set's faces, so it is not the least-norm point
-    of a set that is not a single point); f itself.  solve: as for ``minimum_norm``.  Returns a mask (m,) over the
-    elements of ``flat`` and the points (m', n) for the consistent ones; no gradient.
+    of a set that is not a single point); f itself.  solve: as for ``minimum_norm``.  first (B, n), optional:
+    another minimiser of each element (the first solve's, where ``problem._near_least_norm`` brought it back from far
+    out to f, which can then be the least-norm point itself, so that the tests above see no width): farther from f
+    than UNIQUE_TOL·max(1, ‖f‖∞), the set is not a point, and the point towards it (halfway, at most max(1, ‖f‖∞)/2
+    away, as for one flat direction) is inside it.  Returns a mask (m,) over the elements of ``flat`` and the points
+    (m', n) for the consistent ones; no gradient.
     """
     spread = torch.zeros(len(flat.idx), dtype=torch.bool)
     inner = f[flat.idx].detach().clone()
@@ -321,6 +325,13 @@ def nonunique(f, flat: FlatSet, mu, lower, active, d, solve):
         )
     if several.any():
         spread[several] = _least_norm_several(flat.idx[several], f[flat.idx[several]], flat.PiN[several], solve)[2]
+    if first is not None:
+        x, y = f[flat.idx].detach(), first[flat.idx].detach()
+        size = x.abs().amax(-1, keepdim=True).clamp_min(1.0)
+        gap = (y - x).abs().amax(-1, keepdim=True)
+        missed = flat.consistent & ~spread & (gap[:, 0] > UNIQUE_TOL * size[:, 0])
+        towards = x + 0.5 * torch.minimum(torch.ones_like(gap), size / gap.clamp_min(1e-300)) * (y - x)
+        spread, inner = spread | missed, torch.where(missed[:, None], towards, inner)
     return spread, inner[flat.consistent]
 
 

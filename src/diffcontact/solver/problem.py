@@ -513,16 +513,8 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
                 active[sub],
                 d,
                 _cone_qp(mu[sub], lower[sub], active[sub], d, opts),
+                first=first,
             )
-            # nonunique compares with the least-norm point, and takes a set for a point where `near` is that point
-            # already (the Tikhonov solve of _near_least_norm can end exactly there); but a first minimiser brought
-            # back from far out is another: the set is not a point, and a point inside it lies towards the first
-            # (halfway, and at most max(1, ‖near‖∞) / 2 away, as nonunique's for one flat direction)
-            size = near.abs().amax(-1, keepdim=True).clamp_min(1.0)
-            gap = (first - near).abs().amax(-1, keepdim=True)
-            missed = ~spread & (gap[:, 0] > flat.UNIQUE_TOL * size[:, 0])
-            towards = near + 0.5 * torch.minimum(torch.ones_like(gap), size / gap.clamp_min(1e-300)) * (first - near)
-            spread, inner = spread | missed, torch.where(missed[:, None], towards, inner)
         nonunique = torch.zeros_like(flats.consistent)
         nonunique[flats.consistent] = spread
         A, q = flat.centre_on(A, q, flats, nonunique, inner[spread])

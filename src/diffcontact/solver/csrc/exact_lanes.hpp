@@ -24,6 +24,8 @@ namespace NS {
 // measure (as where the scaling's size estimate is far off), and the retries take over.
 constexpr int DAMPING = 4;
 constexpr double DAMP_BELOW = 1e-3;
+// The exact KKT residual (relative to max(1, ‖z‖∞)) at which polishing, and the faces step, count a point polished.
+constexpr double POLISHED = 1e-14;
 
 // The exact conditions of one group: reduced matrix and its LU factors, per-cone coefficients, residuals.
 template <int D>
@@ -492,7 +494,7 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
   M factored = M{} != 0;  // (all false)
   V n_factor = zero;
   for (int iter = 0; iter < 4 * steps; iter++) {
-    run &= ~(res <= 1e-14);
+    run &= ~(res <= POLISHED);
     M fresh = run & ~factored;
     M out_of_steps = fresh & (n_factor >= (double)steps);
     run &= ~out_of_steps;
@@ -554,7 +556,7 @@ static V polish_pass(Exact<D>& e, Work<D>& w, int steps, M use_weak, M run) {
 // iterate moved onto the faces it points to — of each complementary pair (slack and multiplier of a ray; per
 // eigenvalue, those of a cone) the smaller set to 0 — and one Newton step from there.  On the right faces the
 // complementarity's second-order term is 0 along them, so that step solves the problem to rounding.  Where it does
-// not reach rounding level (1e-14), once more with the choices flipped whose kept member the step made negative;
+// not reach rounding level (POLISHED), once more with the choices flipped whose kept member the step made negative;
 // where that does not either, the iterate is restored and polishing goes on from it.  (Until then w's loop state
 // holds the iterate and w.e_l, w.e_q the choices: both free after the interior-point method.)
 template <int D>
@@ -594,7 +596,7 @@ static void faces_step(Exact<D>& e, Work<D>& w, M run) {
     newton_trial(e, w, w.zb, w.slb, w.llb, w.sqb, w.lqb, none);
     V nw = kkt_residual(w, w.h_l, e.zt, e.slt, e.llt, e.sqt, e.lqt, e.t_z, e.t_l, e.t_q, e.tc_l, e.tc_q);
     // (at rounding level relative to the iterate's size: a step far along a flat direction is not taken)
-    M good = todo & ok & (nw * size_of(e.zt, n) <= 1e-14 * size_of(w.z, n));
+    M good = todo & ok & (nw * size_of(e.zt, n) <= POLISHED * size_of(w.z, n));
     take_point(good, n, K, w.zb, w.slb, w.llb, w.sqb, w.lqb, e.zt, e.slt, e.llt, e.sqt, e.lqt);
     todo &= ok & ~good;
     const V neg = -1e-13 * size_of(e.zt, n);  // (below 0 by more than rounding)
