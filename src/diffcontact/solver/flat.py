@@ -187,19 +187,19 @@ class FlatProjection(torch.autograd.Function):
         PiN, mask = a["PiN"], used[:, :, None] & used[:, None, :]
         At = A - torch.where(mask, a["N"], torch.zeros_like(A))
         qt = q - k * (PiN @ (q * used)[..., None])[..., 0]
-        ctx.save_for_backward(q, used)
-        ctx.a = a
+        # everything backward needs goes through save_for_backward, outputs included: a tensor kept as a ctx
+        # attribute that is also an output makes a cycle (output -> grad_fn -> ctx -> output) that only the
+        # garbage collector frees, so memory grows step after step
+        ctx.save_for_backward(q, used, a["V"], a["evals"], a["null"], PiN, a["N"], a["consistent"])
         ctx.mark_non_differentiable(a["consistent"], a["ref"])
         return At, qt, PiN, a["consistent"], a["ref"]
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, gA, gq, gPi, *_):  # noqa: D102
-        q, used = ctx.saved_tensors
-        a = ctx.a
-        V, evals, null, PiN, N = a["V"], a["evals"], a["null"], a["PiN"], a["N"]
+        q, used, V, evals, null, PiN, N, consistent = ctx.saved_tensors
         mask = used[:, :, None] & used[:, None, :]
-        k = a["consistent"].to(q.dtype)[:, None, None]
+        k = consistent.to(q.dtype)[:, None, None]
         G = torch.where(mask, 0.5 * (gA + gA.mT), torch.zeros_like(gA))
         g = gq * used
         qs = q * used
