@@ -1,0 +1,92 @@
+"""The field's metrics for a tossed box (ContactNets, Acosta et al.): predicted against recorded poses.
+
+Every function takes one or many tosses as flat frame arrays with ``offsets`` (toss i is frames
+``offsets[i]:offsets[i + 1]``), positions in m in the table frame (z up) and unit quaternions w, x, y, z (body to
+table). Errors are averaged over the frames of each toss, then over tosses, so that a long toss counts once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _check(name: str, a: np.ndarray, cols: int) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != cols:
+        raise ValueError(f"{name} has shape {a.shape}, expected (frames, {cols})")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name} is not finite from frame {int(np.argmin(np.isfinite(a).all(1)))}")
+    return a
+
+
+def per_toss_mean(values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """The mean of ``values`` (frames,) over each toss: (n_tosses,)."""
+    offsets = np.asarray(offsets, dtype=np.int64)
+    if offsets[0] != 0 or offsets[-1] != len(values) or (np.diff(offsets) <= 0).any():
+        raise ValueError(f"offsets must rise from 0 to {len(values)} (frames), got {offsets[0]} … {offsets[-1]}")
+    sums = np.add.reduceat(values, offsets[:-1])
+    return sums / np.diff(offsets)
+
+
+def rotation_angle(q_hat: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Geodesic angle between rotations (frames,) in rad: 2 acos |⟨q̂, q⟩| (q and −q are the same rotation); the
+    quaternions are normalised first."""
+    q_hat = q_hat / np.linalg.norm(q_hat, axis=1, keepdims=True)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    dot = np.clip(np.abs((q_hat * q).sum(1)), 0.0, 1.0)
+    return 2.0 * np.arccos(dot)
+
+
+def rotate(quaternion: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Body-frame points (V, 3) rotated by each frame's quaternion (frames, 4), w first: (frames, V, 3)."""
+    w, u = quaternion[:, :1, None], quaternion[:, None, 1:]  # (F, 1, 1), (F, 1, 3)
+    p = np.broadcast_to(points[None], (len(quaternion), *points.shape))
+    t = 2.0 * np.cross(u, p)
+    return p + w * t + np.cross(u, t)
+
+
+def box_vertices(half_extents) -> np.ndarray:
+    """The 8 corners (8, 3) of a box with these half-extents (3,) in its body frame."""
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    return signs * np.asarray(half_extents, dtype=np.float64)
+
+
+def penetration(position: np.ndarray, quaternion: np.ndarray, half_extents, table_height: float) -> np.ndarray:
+    """Depth (frames,) in m of the lowest corner below the table plane z = ``table_height`` (0 where none is below)."""
+    corners = position[:, None] + rotate(quaternion, box_vertices(half_extents))
+    return np.maximum(table_height - corners[..., 2].min(1), 0.0)
+
+
+def box_toss_metrics(
+    position_hat: np.ndarray,
+    quaternion_hat: np.ndarray,
+    position: np.ndarray,
+    quaternion: np.ndarray,
+    offsets: np.ndarray,
+    half_extents,
+    table_height: float,
+) -> dict[str, float]:
+    """The three numbers of a box-toss evaluation, each a mean over tosses of the mean over a toss's frames:
+
+    - ``position_error_pct``: ‖p̂ − p‖ of the centre, in % of the box's width (2 half-extents along x);
+    - ``rotation_error_deg``: the geodesic angle between predicted and recorded rotations, in degrees;
+    - ``penetration_pct``: the depth of the predicted box's lowest corner below the table, in % of the width.
+
+    position_hat, position: (frames, 3) m; quaternion_hat, quaternion: (frames, 4) w, x, y, z; offsets
+    (n_tosses + 1,); half_extents (3,) m; table_height: the table plane's z in m.
+    """
+    position_hat, position = _check("position_hat", position_hat, 3), _check("position", position, 3)
+    quaternion_hat, quaternion = _check("quaternion_hat", quaternion_hat, 4), _check("quaternion", quaternion, 4)
+    if len(position_hat) != len(position) or len(quaternion_hat) != len(position) or len(quaternion) != len(position):
+        raise ValueError("predicted and recorded arrays must have one row per recorded frame")
+    width = 2.0 * float(np.asarray(half_extents, dtype=np.float64)[0])
+    pos = np.linalg.norm(position_hat - position, axis=1) / width * 100.0
+    rot = np.degrees(rotation_angle(quaternion_hat, quaternion))
+    pen = penetration(position_hat, quaternion_hat, half_extents, table_height) / width * 100.0
+    return {
+        "position_error_pct": float(per_toss_mean(pos, offsets).mean()),
+        "rotation_error_deg": float(per_toss_mean(rot, offsets).mean()),
+        "penetration_pct": float(per_toss_mean(pen, offsets).mean()),
+        "tosses": int(len(offsets) - 1),
+        "frames": int(len(position)),
+    }
