@@ -468,6 +468,23 @@ def bench_train(
         )  # fmt: skip
 
 
+@bench_app.command("memory")
+def bench_memory(
+    tasks: list[str] = typer.Argument(None, help="Tasks (default: the 8 benchmark tasks)."),
+    epochs: int = typer.Option(None, "--epochs", min=1, help="Epochs (default: each task's default training's)."),
+    data: str = typer.Option("data", "--data", help="Dataset root (missing datasets are generated there)."),
+    out: str = typer.Option("", help="Also write the results as JSON to this file, and the table beside it (.md)."),
+    threads: int = typer.Option(1, "--threads", min=1, help="Threads of each training (default 1: as `train` runs)."),
+) -> None:
+    """Resident memory (RSS) at the end of every epoch of each task's default training, in a fresh process per task;
+    flat if it grows by at most 50 MB after epoch 5."""
+    from diffcontact.bench.memory import run_memory_benchmark
+
+    _threads(threads)
+    with _user_errors():
+        run_memory_benchmark(tasks or None, epochs, data=data, out=out or None, threads=threads, echo=typer.echo)
+
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 
