@@ -30,7 +30,7 @@ _SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
 # (systems/registry.py: register_system).
 COMMON_TABLES: dict[str, tuple[str, ...] | None] = {
     "task": ("name", "system", "dt", "frames", "dtype", "deviations", "substeps"),
-    "contact": ("mu", "cor", "compensation", "time_of_impact"),
+    "contact": ("mu", "cor", "compensation", "compensation_lift", "time_of_impact"),
     "training": None,
 }
 

@@ -132,5 +132,8 @@ def simulator_for(
     comp = task.config.section("contact").number("compensation", COMPENSATION, lo=0.0, hi=1.0)
     if reg < 0:
         raise ConfigError(f"reg = {reg:g} is not >= 0")
-    model = ContactModel(reg=reg, compensation=comp, solver=solver or ContactSolver())
+    lift = task.config.section("contact").choice(
+        "compensation_lift", ("pseudo-inverse", "effective-mass"), "pseudo-inverse"
+    )
+    model = ContactModel(reg=reg, compensation=comp, solver=solver or ContactSolver(), lift=lift)
     return Simulator(task.system, dynamics, model, time_of_impact=time_of_impact, substeps=substeps)

@@ -52,6 +52,9 @@ class Phases:
 class ContactModel:
     """CM (``reg = 0``) or CMr (``reg > 0``, 1/kg), with penetration compensation ``compensation`` × depth/dt.
 
+    ``lift``: how the normal targets become contact velocities (:meth:`target_velocity`): "pseudo-inverse" (the
+    published Eq. S.18) or "effective-mass" (the motion of least kinetic energy that meets them).
+
     ``solver``: the :class:`~diffcontact.solver.ContactSolver` of both phases (tolerances, failure policy,
     counters); the default raises on a failed problem (no silent zero impulses).  The task's contact model is
     built by :func:`diffcontact.simulator.simulator_for`.
@@ -60,6 +63,7 @@ class ContactModel:
     reg: float = 0.0
     compensation: float = COMPENSATION
     solver: ContactSolver = field(default_factory=ContactSolver)
+    lift: str = "pseudo-inverse"
 
     def phases(
         self,
@@ -82,7 +86,7 @@ class ContactModel:
         e = params.e.to(x)[contacts.slot]
         vC = (Jc @ vs.reshape(Bp, -1, 1))[..., 0]
         f_c = solve(A_qp, vC, mu, None, contacts.active)
-        v_target = self.target_velocity(constraints, xs, contacts, dt)
+        v_target = self.target_velocity(constraints, xs, contacts, dt, A)
         vC_c = vC + (A @ f_c[..., None])[..., 0]
         lower = e * f_c[:, ::dc]
         # a separating contact's compression impulse is zero up to rounding (±1e-16): the bound must stay ≥ 0
@@ -92,15 +96,23 @@ class ContactModel:
 
     @torch.no_grad()
     def target_velocity(
-        self, constraints: Constraints, xs: torch.Tensor, contacts: ContactSet, dt: float
+        self, constraints: Constraints, xs: torch.Tensor, contacts: ContactSet, dt: float, A: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """v*_C (B', C) of paper Eq. S.17: v_d = −compensation·gap/dt on normals (0 on tangents), lifted by
-        the pseudo-inverse of J_C (min-norm least squares, Eq. S.18), projected onto J_E y = 0 and mapped
-        back by J_C."""
+        """v*_C (B', C) of paper Eq. S.17: v_d = −compensation·gap/dt on normals (0 on tangents), made a velocity
+        the constrained system can have.  "pseudo-inverse" (published): lifted by the pseudo-inverse of J_C (min-norm
+        least squares in the point coordinates, Eq. S.18), projected onto J_E y = 0 and mapped back by J_C; the
+        point coordinates' Euclidean norm is not the body's, so equal depths under a flat face can give a target
+        that tilts it.  "effective-mass": A A⁺ v_d (A: (B', C, C) the contact-space inverse inertia), the contact
+        velocity of the motion of least kinetic energy closest to v_d: equal depths lift a face straight up."""
         Bp, k_c = contacts.active.shape
         vd = torch.zeros(Bp, k_c, contacts.dc, dtype=xs.dtype)
         vd[..., 0] = -self.compensation * contacts.gap.to(xs) / dt
         vd = vd.reshape(Bp, -1, 1)
+        if self.lift == "effective-mass":
+            if A is None:
+                raise ValueError("the effective-mass lift needs A, the contact-space inverse inertia")
+            A = A.detach().to(xs)
+            return (A @ torch.linalg.lstsq(A, vd, driver="gelsd").solution)[..., 0]
         Jc = contacts.J.to(xs).detach()
         y = torch.linalg.lstsq(Jc, vd, driver="gelsd").solution  # J_C⁺ v_d, (B', D, 1)
         if constraints.count:

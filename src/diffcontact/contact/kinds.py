@@ -112,6 +112,32 @@ class DiskRimPlanes(ContactKind):
         return gap, w[..., None, None] * self.frame.to(x)[None, :, None]
 
 
+class VertexPlanes(ContactKind):
+    """Vertices of 3-D extended bodies (body-frame coordinates b, m) against fixed planes n·y + c >= 0.
+
+    The vertex is c + Σ_k b_k (x_k − c) (x_0 = c the centre, x_k the axis points), linear in the body's points with
+    the constant weights [1 − Σ b_k, b_k], so gap = n·vertex + c and its rows are those weights times the plane's
+    frame.
+    """
+
+    def __init__(self, body, vertex, normal, offset, slot, dc: int):
+        self.pts = _body_points(body, 4)
+        self.n, self.c, self.slot, self.dc = normal, offset, slot, dc
+        self.count = int(body.shape[0])
+        self.cols = self.pts
+        self.weights = torch.cat([1.0 - vertex.sum(-1, keepdim=True), vertex], dim=-1)  # (K, 4)
+        self.frame = tangent_frame(normal, dc)
+
+    def evaluate(self, x, rows):
+        w = self.weights.to(x)
+        vertex = (w[None, :, :, None] * x[:, self.pts]).sum(2)  # (B, K, d)
+        gap = (vertex * self.n.to(x)).sum(-1) + self.c.to(x)
+        if not rows:
+            return gap, None
+        vals = w[:, :, None, None] * self.frame.to(x)[:, None]  # (K, 4, dc, d)
+        return gap, vals.expand(x.shape[0], *vals.shape)
+
+
 def _wrap(angle: torch.Tensor) -> torch.Tensor:
     return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
 

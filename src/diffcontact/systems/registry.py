@@ -13,7 +13,7 @@ from typing import Any
 
 from diffcontact.config import COMMON_TABLES, TaskConfig, check_keys, load_task
 from diffcontact.errors import ConfigError
-from diffcontact.systems import bouncing, gyroscope, pendulum, rope
+from diffcontact.systems import bouncing, box, gyroscope, pendulum, rope
 from diffcontact.systems.base import Stepping, Task
 
 
@@ -44,6 +44,7 @@ register_system("bouncing", bouncing.build_bouncing, bouncing.TABLES)
 register_system("chain_pendulum", pendulum.build_chain_pendulum, pendulum.TABLES)
 register_system("rope", rope.build_rope, rope.TABLES)
 register_system("gyroscope", gyroscope.build_gyroscope, gyroscope.TABLES)
+register_system("box", box.build_box, box.TABLES)
 
 BENCHMARK_TASKS = ("BP5-e", "BP5", "CP3-e", "CP3", "BD5", "Rope", "Gyro-e", "Gyro")
 
