@@ -144,6 +144,28 @@ def generate(
     typer.echo(f"done: {len(names)} task(s) in {time.perf_counter() - t0:.1f} s -> {out}")
 
 
+import_app = typer.Typer(help="Import measured trajectories as a dataset.", no_args_is_help=True)
+app.add_typer(import_app, name="import")
+
+
+@import_app.command("contactnets")
+def import_contactnets(
+    source: str = typer.Argument(
+        ..., help="A folder of ContactNets K.pt files, a tosses .npz in that layout, or 'sample' (20 shipped tosses)."
+    ),
+    out: str = typer.Option(..., "--out", help="The dataset folder to write (e.g. data/CubeToss)."),
+    split: tuple[float, float, float] = typer.Option((0.8, 0.1, 0.1), "--split", help="Train, val, test fractions."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the split by toss."),
+    all_test: bool = typer.Option(False, "--all-test", help="Every toss in the test split (evaluation only)."),
+    task: str = typer.Option("CubeToss", "--task", help="The box task the tosses are of."),
+) -> None:
+    """Import the ContactNets cube tosses (real poses of a real cube): SI units, the table at z = 0, splits by toss."""
+    from diffcontact.data.measured import import_tosses
+
+    with _user_errors():
+        import_tosses(source, out, task=task, split=split, seed=seed, all_test=all_test, echo=typer.echo)
+
+
 @app.command("train")
 def train(
     task: str = typer.Argument(..., help=TASK_HELP + " Its dataset must exist: diffcontact generate TASK."),
@@ -261,13 +283,28 @@ def evaluate(
     frames: int = typer.Option(None, "--frames", help="Frames rolled out (default 70, or the split's if fewer)."),
     threads: int = THREADS,
     pictures: bool = typer.Option(True, help="Also draw the rollout picture and GIF."),
+    out: str = typer.Option("", "--out", help="The folder written (default RUN/eval)."),
+    nominal: bool = typer.Option(
+        False, "--nominal", help="RUN is a task: evaluate its simulator with the task file's own values (no training)."
+    ),
 ) -> None:
-    """Metrics (5-step error, error curve, true energy) of a run's best model against the exact model; figures."""
+    """Metrics of a run's best model on a split: on simulated data the 5-step error, error curve and true energy
+    against the exact model; on measured tosses (diffcontact import) the position, rotation and penetration errors."""
     _threads(threads)
-    from diffcontact.eval.evaluate import evaluate_run
+    from diffcontact.eval.evaluate import evaluate_nominal, evaluate_run
 
     with _user_errors():  # (a bad run or data, a failed solve, a diverging model)
-        m = evaluate_run(run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures)
+        if nominal:
+            m = evaluate_nominal(run, data or "data", out or f"runs/{run}-nominal/eval", split)
+        else:
+            m = evaluate_run(
+                run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures, out=out or None
+            )
+    if "position_error_pct" in m:
+        typer.echo(f"{m['task']} {m['model']}: position error {m['position_error_pct']:.2f} % of the width, "
+                   f"rotation {m['rotation_error_deg']:.2f} deg, penetration {m['penetration_pct']:.3f} % "
+                   f"({m['tosses']} tosses, {m['frames']} frames)")  # fmt: skip
+        return
     err5, energy = m["trajectory_error"], m["energy"]
     half = "n/a" if err5["ci95"] is None else f"{err5['ci95']:.3g}"
     typer.echo(f"{m['task']} {m['model']}: {err5['steps']}-step error {err5['mean']:.4g} ± {half} (95 %, "
@@ -483,6 +520,43 @@ def bench_memory(
     _threads(threads)
     with _user_errors():
         run_memory_benchmark(tasks or None, epochs, data=data, out=out or None, threads=threads, echo=typer.echo)
+
+
+peers_app = typer.Typer(
+    help="Peers of the real-data benchmark: a cube in MuJoCo and in Bullet, contact parameters fitted to the tosses.",
+    no_args_is_help=True,
+)
+app.add_typer(peers_app, name="peers")
+
+
+@peers_app.command("fit")
+def peers_fit(
+    engine: str = typer.Argument(..., help="mujoco or bullet."),
+    source: str = typer.Argument(..., help="The tosses: a ContactNets .npz or a folder of K.pt files."),
+    out: str = typer.Option(..., "--out", help="Folder of fitted.json, metrics.json and predictions.npz."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the split, the training tosses' order and CMA-ES."),
+    split: tuple[float, float, float] = typer.Option(
+        (0.8, 0.1, 0.1), "--split", help="Fractions of the tosses for train, val and test."
+    ),
+    train_tosses: int = typer.Option(
+        None, "--train-tosses", min=1, help="Fit on the first N training tosses in a seeded order (default: all)."
+    ),
+    budget: int = typer.Option(
+        None, "--budget", min=1, help="CMA-ES evaluations at most, each over every training toss (default 600)."
+    ),
+) -> None:
+    """Fit an engine's contact parameters to the training tosses (CMA-ES); score it and its nominal parameters on
+    the test tosses."""
+    from diffcontact.peers.fit import DEFAULT_BUDGET, run_fit
+
+    with _user_errors():
+        m = run_fit(engine, source, out, seed=seed, split=split, train_tosses=train_tosses,
+                    budget=budget or DEFAULT_BUDGET, echo=typer.echo)  # fmt: skip
+    for name in ("fitted", "nominal"):
+        r = {k: float("nan") for k in ("position_error_pct", "rotation_error_deg", "penetration_pct")} | m[name]
+        typer.echo(f"{engine} {name}: position {r['position_error_pct']:.2f} %, rotation "
+                   f"{r['rotation_error_deg']:.2f} deg, penetration {r['penetration_pct']:.3f} % (test)")  # fmt: skip
+    typer.echo(f"-> {out}")
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -190,6 +190,20 @@ def remove_stale(folder: str | Path) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def dataset_folder(root: str | Path, task: str) -> Path:
+    """The folder of ``task``'s dataset under ``root``: ``root`` itself if it holds a dataset of that task (an
+    imported one, e.g. ``--data data/CubeToss``), else ``root/task`` (``diffcontact generate --out root``)."""
+    root = Path(root)
+    meta = root / META
+    if meta.is_file():
+        try:
+            if json.loads(meta.read_text()).get("request", {}).get("task") == task:
+                return root
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+            pass  # (load_meta reports it, on the folder it is given)
+    return root / task
+
+
 def load_meta(folder: str | Path) -> dict[str, Any]:
     """The parsed ``meta.json`` of a dataset folder (DatasetError if missing, unreadable or of another format)."""
     path = Path(folder) / META

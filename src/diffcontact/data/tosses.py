@@ -24,6 +24,8 @@ from diffcontact.errors import DatasetError
 CONTACTNETS_DT = 1.0 / 148.0  # s between frames
 CONTACTNETS_LENGTH_SCALE = 0.0524  # m: the cube's half-width, the unit of the source's positions
 UNIT_NORM_TOL = 1e-6  # |‖q‖ − 1| allowed of a recorded quaternion
+#: 20 real tosses shipped with the package (BSD-3, samples/LICENSE-contactnets.txt): ``read_tosses("sample")``
+SAMPLE = Path(__file__).resolve().parent / "samples" / "contactnets_cube_20.npz"
 
 
 @dataclass(frozen=True)
@@ -148,11 +150,12 @@ def _read_pt_folder(folder: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, f
 
 
 def read_tosses(source: str | Path) -> Tosses:
-    """Tosses in SI units from a ContactNets source: a folder of ``K.pt`` files or an ``.npz`` (module docstring).
+    """Tosses in SI units from a ContactNets source: a folder of ``K.pt`` files or an ``.npz`` (module docstring);
+    "sample": the 20 tosses shipped with the package (:data:`SAMPLE`).
 
     Raises DatasetError, naming the file and the toss, for a file in neither layout, a non-finite value or a
     quaternion that is not of unit norm."""
-    path = Path(source)
+    path = SAMPLE if str(source) == "sample" else Path(source)
     if path.is_dir():
         frames, offsets, ids, scale, dt = _read_pt_folder(path)
     elif path.is_file():

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import torch
 
-from diffcontact.data.store import save_npz, versions, write_json
+from diffcontact.data.store import dataset_folder, save_npz, versions, write_json
+from diffcontact.errors import DatasetError
 from diffcontact.eval.loading import load_run
 from diffcontact.eval.metrics import (
     energy_deviation,
@@ -19,6 +20,7 @@ from diffcontact.eval.metrics import (
     true_energy,
 )
 from diffcontact.eval.rollouts import rollout_split
+from diffcontact.eval.tosses import evaluate_tosses, measured
 
 METRICS_VERSION = 2  # 2: energy deviation relative to the energy in motion (1: to |E(z_0)|)
 STEPS = 5  # frames of the Fig. 3 error (0 … 4: the training horizon)
@@ -36,6 +38,7 @@ def evaluate_run(
     task: str | None = None,
     frames: int | None = None,
     pictures: bool = True,
+    out: str | Path | None = None,
 ) -> dict:
     """Evaluate the best checkpoint of ``run`` on ``split`` of its task's dataset (``data_root``: default the root
     the run was trained from) and write ``run/eval/``: metrics.json (atomically; the metrics, the run's config and
@@ -43,14 +46,19 @@ def evaluate_run(
     prediction), and with ``pictures`` rollout.png (every 5th frame) and rollout.gif (truth beside prediction).
 
     ``frames``: frames rolled out (default 70, or the split's if fewer).  ``task``: the task the caller expects
-    (ConfigError for a run of another).  Returns the metrics.
+    (ConfigError for a run of another).  ``out``: the folder written (default ``run/eval``).  On measured tosses
+    (``diffcontact import``) the metrics are the field's (``eval/tosses.py``).  Returns the metrics.
     """
     from diffcontact.eval import animate, plots
 
     started = time.perf_counter()
     loaded = load_run(run, task)
     run, name = Path(run), loaded.task_name
-    folder = Path(data_root or loaded.config["args"].get("data_root", "data")) / name
+    folder = dataset_folder(data_root or loaded.config["args"].get("data_root", "data"), name)
+    if measured(folder):  # (recorded tosses: whole tosses from their first state, scored in the field's metrics)
+        record = {"task": name, "model": loaded.model_name, "run_dir": str(run), "checkpoint": str(loaded.checkpoint)}
+        record |= {"learned": _learned(run), "config": loaded.config}
+        return evaluate_tosses(loaded.net, folder, out or run / "eval", split, **record)
     if frames is None:
         from diffcontact.data.store import load_meta
 
@@ -95,7 +103,7 @@ def evaluate_run(
         "config": loaded.config,
         "versions": versions(),
     }
-    out = run / "eval"
+    out = Path(out or run / "eval")
     out.mkdir(parents=True, exist_ok=True)
     dts = {name: ro.dt}
     plots.error_curves({name: {loaded.model_name: metrics["error_curve"]}}, dts, out / "error.png")
@@ -118,3 +126,17 @@ def _learned(run: Path) -> dict | None:
         return None
     learned = json.loads(path.read_text())
     return {k: learned[k] for k in ("mu", "e", "mass_ratio", "moments", "inertia") if k in learned}
+
+
+def evaluate_nominal(task: str, data_root: str | Path, out: str | Path, split: str = "test") -> dict:
+    """Evaluate a task's simulator with the task file's own (nominal) values on the measured tosses of its dataset
+    (``data_root``: the dataset folder or its root) into ``out``; returns the metrics."""
+    from diffcontact.models.model import known_model
+    from diffcontact.systems.registry import build_task
+
+    built = build_task(task)
+    folder = dataset_folder(data_root, built.config.name)
+    if not measured(folder):
+        raise DatasetError(f"{folder}: --nominal evaluates measured tosses (diffcontact import), not simulated data")
+    record = {"task": built.config.name, "model": "nominal (the task file's values, exact model CM)"}
+    return evaluate_tosses(known_model(built), folder, out, split, **record)

@@ -15,7 +15,7 @@ from diffcontact.errors import ConfigError
 from diffcontact.models.params import LearnedParams
 from diffcontact.simulator import Simulator, simulator_for
 from diffcontact.solver.contact_solver import ContactSolver
-from diffcontact.state import State
+from diffcontact.state import Params, State
 
 CMR_REG = 0.01
 MODEL_NAMES = {
@@ -36,6 +36,22 @@ class ContactModelNet(nn.Module):
     def forward(self, x0: torch.Tensor, v0: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
         xs, vs, _ = self.simulator.rollout(State(x0, v0), self.params(), self.dt, frames)
         return xs, vs
+
+
+class KnownParams(nn.Module):
+    """Params that are not learned (a task's true or nominal values) behind the LearnedParams interface."""
+
+    def __init__(self, params: Params):
+        super().__init__()
+        self.known = params
+
+    def forward(self) -> Params:
+        return self.known
+
+
+def known_model(task, dynamics: str = "lagrangian") -> ContactModelNet:
+    """The task's simulator with its own (true or nominal) Params, as a model: ``forward(x0, v0, frames)``."""
+    return ContactModelNet(simulator_for(task, dynamics), KnownParams(task.params), task.dt, "nominal")
 
 
 def build_model(

@@ -112,3 +112,14 @@ def points_to_pose(x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torc
         [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]], -1
     )
     return centre, matrix_to_quaternion(R), dc, omega
+
+
+def rotation_vector(q: torch.Tensor) -> torch.Tensor:
+    """Rotation vectors (..., 3) (axis × angle in [0, π], rad) of unit quaternions q (..., 4), w first."""
+    q = torch.where(q[..., :1] < 0, -q, q)
+    w, u = q[..., 0], q[..., 1:]
+    s = u.norm(dim=-1)
+    angle = 2.0 * torch.atan2(s, w)
+    # angle / s, with its limit 2 / w (≈ 2) where s is tiny (no 0/0)
+    factor = torch.where(s > 1e-12, angle / s.clamp_min(1e-300), 2.0 / w)
+    return factor[..., None] * u

@@ -10,7 +10,7 @@ from torch.utils.data import DataLoader
 
 from diffcontact.config import load_task
 from diffcontact.data.dataset import ChunkDataset, PairDataset, TrajectoryDataset
-from diffcontact.data.store import SPLITS, Split, load_split
+from diffcontact.data.store import SPLITS, Split, dataset_folder, load_split
 from diffcontact.errors import ConfigError
 
 MODES = ("chunks", "pairs")
@@ -38,7 +38,7 @@ class ContactDataModule(pl.LightningDataModule):
         if batch_size < 1:
             raise ConfigError(f"batch_size = {batch_size} is not >= 1")
         self.config = load_task(task)  # (a packaged task's name or a task file's path: its data are in root/NAME)
-        self.folder = Path(root) / self.config.name
+        self.folder = dataset_folder(root, self.config.name)
         self.batch_size, self.mode, self.dtype = batch_size, mode, dtype
         self.seed, self.num_workers = seed, num_workers
         self.splits: dict[str, Split] = {}
