@@ -1,0 +1,157 @@
+"""Measured tosses: the box-toss metrics by hand, the importer on the shipped sample, and every bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from diffcontact.cli import app
+from diffcontact.data.measured import finite_difference_twist, import_tosses
+from diffcontact.data.tosses import SAMPLE, Tosses, read_tosses
+from diffcontact.errors import DatasetError
+from diffcontact.eval.pose_metrics import box_toss_metrics
+
+HALF = 0.0524
+
+
+def test_the_three_metrics_against_hand_computed_values():
+    # two tosses, 2 and 1 frames; the width is 0.1048 m
+    offsets = np.array([0, 2, 3])
+    # the third frame's centre is 1.048 cm lower than a box resting on z = 0: its corners are 10 % of the width deep
+    p = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, HALF - 0.01048]])
+    ph = p + np.array([[0.1048, 0, 0], [0, 0, 0], [0, 0.0524, 0]])  # errors 100 %, 0 %, 50 %
+    q = np.tile([1.0, 0, 0, 0], (3, 1))
+    turn_x = [math.cos(math.pi / 8), math.sin(math.pi / 8), 0, 0]  # 45° about x
+    qh = np.array([[1.0, 0, 0, 0], turn_x, [-1.0, 0, 0, 0]])  # 0°, 45°, 0° (−q is q)
+    m = box_toss_metrics(ph, qh, p, q, offsets, [HALF] * 3, table_height=0.0)
+    assert m["position_error_pct"] == pytest.approx(((100 + 0) / 2 + 50) / 2)
+    assert m["rotation_error_deg"] == pytest.approx(((0 + 45) / 2 + 0) / 2)
+    assert m["penetration_pct"] == pytest.approx(((0 + 0) / 2 + 10) / 2)
+    assert (m["tosses"], m["frames"]) == (2, 3)
+
+
+def test_central_differences_are_exact_for_a_parabola_and_a_steady_spin():
+    dt, n = 0.01, 7
+    t = np.arange(n) * dt
+    position = np.stack([0.3 * t, 0 * t, 1.0 + 0.5 * t - 4.9 * t**2], 1)
+    angle = 2.0 * t  # 2 rad/s about the body z axis
+    quaternion = np.stack([np.cos(angle / 2), 0 * t, 0 * t, np.sin(angle / 2)], 1)
+    tosses = Tosses(position, quaternion, 0 * position, 0 * position, np.array([0, n]), np.array([0]), dt)
+    velocity, omega = finite_difference_twist(tosses)
+    inner = slice(1, n - 1)
+    exact = np.stack([0.3 + 0 * t, 0 * t, 0.5 - 9.8 * t], 1)
+    assert np.abs(velocity[inner] - exact[inner]).max() <= 1e-12
+    assert np.abs(omega - [0, 0, 2.0]).max() <= 1e-12
+
+
+def test_importing_the_shipped_sample(tmp_path):
+    meta = import_tosses("sample", tmp_path / "ct", split=(0.5, 0.25, 0.25), seed=3)
+    req = meta["request"]
+    assert req["measured"] and req["source"]["sha256"] and req["units"]["length"] == "m"
+    ids = req["toss_ids"]
+    assert sorted(ids["train"] + ids["val"] + ids["test"]) == list(range(20))
+    assert (len(ids["train"]), len(ids["val"]), len(ids["test"])) == (10, 5, 5)
+    assert -0.003 < req["table_height_m"] < 0.0  # the data's table is 1-2 mm below z = 0
+    with np.load(tmp_path / "ct" / "test.npz") as z:
+        lengths = meta["splits"]["test"]["lengths"]
+        assert z["x"].shape == (5, max(lengths), 4, 3)
+    # the same seed gives the same split; the whole import is reproducible to the byte
+    again = import_tosses("sample", tmp_path / "again", split=(0.5, 0.25, 0.25), seed=3)
+    assert again["splits"]["train"]["sha256"] == meta["splits"]["train"]["sha256"]
+    every = import_tosses("sample", tmp_path / "all", all_test=True)
+    assert len(every["request"]["toss_ids"]["test"]) == 20 and set(every["splits"]) == {"test"}
+
+
+def _write_npz(path, frames, offsets, toss_id):
+    np.savez(path, frames=frames, offsets=offsets, toss_id=toss_id, length_scale_m=0.0524, dt=1 / 148)
+    return path
+
+
+@pytest.fixture
+def sample_arrays():
+    with np.load(SAMPLE) as z:
+        o = z["offsets"][:4]
+        return z["frames"][: o[-1]].copy(), o.copy(), z["toss_id"][:3].copy()
+
+
+def _bad(tmp_path, frames, offsets, toss_id, match, **kw):
+    src = _write_npz(tmp_path / "bad.npz", frames, offsets, toss_id)
+    out = tmp_path / "out"
+    with pytest.raises(DatasetError, match=match):
+        import_tosses(src, out, **kw)
+    assert not out.exists()  # nothing written
+
+
+def test_a_non_finite_value_names_the_file_and_toss(tmp_path, sample_arrays):
+    frames, o, ids = sample_arrays
+    frames[o[1] + 5, 8] = np.nan
+    _bad(tmp_path, frames, o, ids, r"bad.npz, toss 1: frame 5, column 8 is not finite")
+
+
+def test_a_quaternion_not_of_unit_norm(tmp_path, sample_arrays):
+    frames, o, ids = sample_arrays
+    frames[o[2] + 3, 3:7] *= 1.01
+    _bad(tmp_path, frames, o, ids, r"toss 2: frame 3 has a quaternion of norm 1.01")
+
+
+def test_a_toss_shorter_than_the_window(tmp_path, sample_arrays):
+    frames, o, ids = sample_arrays
+    _bad(tmp_path, frames, o, ids, r"toss 0 has \d+ frames, shorter than the window \(500 frames\)", window=500)
+
+
+def test_an_empty_split(tmp_path, sample_arrays):
+    frames, o, ids = sample_arrays
+    _bad(tmp_path, frames, o, ids, r"split val is empty", split=(0.6, 0.0, 0.4))
+
+
+def test_files_in_neither_layout(tmp_path):
+    not_npz = tmp_path / "x.npz"
+    not_npz.write_bytes(b"not a zip")
+    with pytest.raises(DatasetError, match="x.npz is not a readable .npz"):
+        read_tosses(not_npz)
+    other = tmp_path / "other.npz"
+    np.savez(other, a=np.zeros(3))
+    with pytest.raises(DatasetError, match=r"other.npz: lacks arrays \['frames', 'offsets', 'toss_id'\]"):
+        read_tosses(other)
+    folder = tmp_path / "pts"
+    folder.mkdir()
+    torch.save(torch.zeros(1, 10, 13, dtype=torch.float64), folder / "0.pt")
+    with pytest.raises(DatasetError, match=r"0.pt: holds \[1, 10, 13\], expected a tensor \(1, T, 19\)"):
+        read_tosses(folder)
+
+
+def test_a_folder_of_pt_files_reads_as_the_npz(tmp_path, sample_arrays):
+    frames, o, ids = sample_arrays
+    folder = tmp_path / "tosses_processed"
+    folder.mkdir()
+    for i, k in enumerate(ids):
+        t = np.zeros((1, o[i + 1] - o[i], 19))
+        t[0, :, :13] = frames[o[i] : o[i + 1]]
+        torch.save(torch.from_numpy(t), folder / f"{k}.pt")
+    a = read_tosses(folder)
+    b = read_tosses(_write_npz(tmp_path / "same.npz", frames, o, ids))
+    for key in ("position", "quaternion", "velocity", "omega", "offsets", "toss_id"):
+        assert np.array_equal(getattr(a, key), getattr(b, key))
+
+
+def test_the_import_and_nominal_evaluation_commands(tmp_path):
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+    data = tmp_path / "CubeToss"
+    res = runner.invoke(app, ["import", "contactnets", "sample", "--out", str(data), "--split", "0.8", "0.1", "0.1"])
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "nominal"
+    res = runner.invoke(app, ["evaluate", "CubeToss", "--nominal", "--data", str(data), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["tosses"] == 2 and 0 < m["position_error_pct"] < 100 and m["penetration_pct"] < 2
+    with np.load(out / "predictions.npz") as z:
+        assert z["position"].shape == (m["frames"], 3) and z["quaternion"].shape == (m["frames"], 4)
+        ids = json.loads((data / "meta.json").read_text())["request"]["toss_ids"]["test"]
+        assert z["toss_id"].tolist() == ids
+    assert (out / "tosses.png").is_file()
