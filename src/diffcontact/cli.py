@@ -559,43 +559,6 @@ def peers_fit(
     typer.echo(f"-> {out}")
 
 
-peers_app = typer.Typer(
-    help="Peers of the real-data benchmark: a cube in MuJoCo and in Bullet, contact parameters fitted to the tosses.",
-    no_args_is_help=True,
-)
-app.add_typer(peers_app, name="peers")
-
-
-@peers_app.command("fit")
-def peers_fit(
-    engine: str = typer.Argument(..., help="mujoco or bullet."),
-    source: str = typer.Argument(..., help="The tosses: a ContactNets .npz or a folder of K.pt files."),
-    out: str = typer.Option(..., "--out", help="Folder of fitted.json, metrics.json and predictions.npz."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the split, the training tosses' order and CMA-ES."),
-    split: tuple[float, float, float] = typer.Option(
-        (0.8, 0.1, 0.1), "--split", help="Fractions of the tosses for train, val and test."
-    ),
-    train_tosses: int = typer.Option(
-        None, "--train-tosses", min=1, help="Fit on the first N training tosses in a seeded order (default: all)."
-    ),
-    budget: int = typer.Option(
-        None, "--budget", min=1, help="CMA-ES evaluations at most, each over every training toss (default 600)."
-    ),
-) -> None:
-    """Fit an engine's contact parameters to the training tosses (CMA-ES); score it and its nominal parameters on
-    the test tosses."""
-    from diffcontact.peers.fit import DEFAULT_BUDGET, run_fit
-
-    with _user_errors():
-        m = run_fit(engine, source, out, seed=seed, split=split, train_tosses=train_tosses,
-                    budget=budget or DEFAULT_BUDGET, echo=typer.echo)  # fmt: skip
-    for name in ("fitted", "nominal"):
-        r = {k: float("nan") for k in ("position_error_pct", "rotation_error_deg", "penetration_pct")} | m[name]
-        typer.echo(f"{engine} {name}: position {r['position_error_pct']:.2f} %, rotation "
-                   f"{r['rotation_error_deg']:.2f} deg, penetration {r['penetration_pct']:.3f} % (test)")  # fmt: skip
-    typer.echo(f"-> {out}")
-
-
 def main() -> None:  # pragma: no cover - console entry point
     app()
 

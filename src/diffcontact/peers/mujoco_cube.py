@@ -1,0 +1,87 @@
+"""The cube on a table in MuJoCo: one free body, one plane, rolled out with ``mujoco.rollout``.
+
+Timestep dt / 10 (10 steps a recorded frame); MuJoCo's defaults otherwise (semi-implicit Euler, pyramidal friction
+cones, Newton solver). The contact parameters are set on both geoms alike, so MuJoCo's mixing of two geoms' values
+(friction: the larger; solref, solimp: averaged) returns them unchanged. solimp's midpoint and power keep their
+defaults (0.5, 2); torsional and rolling friction theirs (0.005, 0.0001).
+
+The free joint's state is qpos = (centre in the table frame, quaternion w, x, y, z) and qvel = (centre velocity in
+the table frame, angular velocity in the BODY frame): the tosses' ω (body frame) goes in as it is.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from mujoco import rollout
+
+from diffcontact.data.tosses import Tosses
+from diffcontact.peers.cube import (
+    GRAVITY,
+    HALF_EXTENT,
+    INERTIA,
+    MASS,
+    NOMINAL_FRICTION,
+    SUBSTEPS,
+    Param,
+    check_params,
+    roll_out_groups,
+)
+
+ENGINE = "mujoco"
+MIN_TIMECONST = 2.0 * (1.0 / 148.0) / SUBSTEPS  # s: MuJoCo raises a smaller timeconst to 2 timesteps itself
+PARAMETERS = (
+    Param("friction", 0.01, 1.0, log=True, nominal=NOMINAL_FRICTION),
+    Param("timeconst", MIN_TIMECONST, 0.1, log=True, nominal=0.02, unit="s"),
+    Param("dampratio", 0.05, 3.0, log=True, nominal=1.0),
+    Param("dmin", 0.0001, 0.9999, log=False, nominal=0.9),
+    Param("dmax", 0.0001, 0.9999, log=False, nominal=0.95),
+    Param("width", 1e-4, 0.05, log=True, nominal=0.001, unit="m"),
+)
+_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS  # time, qpos (7), qvel (6): columns 1-3 centre, 4-7 quaternion
+
+
+def _model(table_height: float, dt: float, params: dict[str, float]) -> mujoco.MjModel:
+    h, inertia = HALF_EXTENT, INERTIA
+    xml = f"""<mujoco>
+  <option timestep="{dt / SUBSTEPS!r}" gravity="0 0 {-GRAVITY!r}"/>
+  <worldbody>
+    <geom name="table" type="plane" size="0 0 1" pos="0 0 {table_height!r}"/>
+    <body name="cube">
+      <freejoint/>
+      <inertial pos="0 0 0" mass="{MASS!r}" diaginertia="{inertia!r} {inertia!r} {inertia!r}"/>
+      <geom name="cube" type="box" size="{h!r} {h!r} {h!r}"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+    model = mujoco.MjModel.from_xml_string(xml)
+    model.geom_friction[:, 0] = params["friction"]
+    model.geom_solref[:] = (params["timeconst"], params["dampratio"])
+    model.geom_solimp[:, :3] = (params["dmin"], params["dmax"], params["width"])
+    return model
+
+
+def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each toss rolled out from its first recorded frame for its length: position (F, 3) m, quaternion (F, 4)
+    w, x, y, z, one row per recorded frame (frame 0 the recorded one). params: the names of ``PARAMETERS``, all
+    given; table_height: the table plane's z in m."""
+    check_params(params, PARAMETERS, ENGINE)
+    model = _model(table_height, tosses.dt, params)
+    data = mujoco.MjData(model)
+    size = mujoco.mj_stateSize(model, _STATE)
+
+    def run_group(index: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        start = np.zeros((len(index), size))
+        for j, i in enumerate(index):
+            f = int(tosses.offsets[i])
+            mujoco.mj_resetData(model, data)
+            data.qpos[:] = np.concatenate([tosses.position[f], tosses.quaternion[f]])
+            data.qvel[:] = np.concatenate([tosses.velocity[f], tosses.omega[f]])
+            mujoco.mj_getState(model, data, start[j], _STATE)
+        states = start[:, None]
+        if frames > 1:
+            out, _ = rollout.rollout(model, data, start, nstep=(frames - 1) * SUBSTEPS)
+            states = np.concatenate([states, out[:, SUBSTEPS - 1 :: SUBSTEPS]], axis=1)
+        return states[..., 1:4], states[..., 4:8]
+
+    return roll_out_groups(tosses, run_group)

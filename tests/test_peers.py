@@ -1,0 +1,163 @@
+"""The MuJoCo and Bullet cube peers: rollout layout, free flight against closed forms, a settling drop, the command.
+
+Skipped for an engine (or the optimiser) that is not installed: ``pip install -e '.[peers]'``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from diffcontact.data.tosses import CONTACTNETS_DT, Tosses
+from diffcontact.errors import ConfigError
+from diffcontact.eval.pose_metrics import box_vertices, rotate, rotation_angle
+from diffcontact.peers import ENGINES, MissingPeerPackageError, load_engine
+from diffcontact.peers.cube import GRAVITY, HALF_EXTENT, SUBSTEPS, nominal
+
+TABLE = -0.00186  # m: the data's table plane, not at z = 0
+SETTLE_TOL = 2e-3  # m: lowest corner of the resting cube from the table
+REST_TOL = 1e-4  # m: how far a resting cube may move over its last frames
+FLIGHT_TOL = 1e-6  # m: free flight against the semi-implicit Euler parabola
+SPIN_TOL = 1e-9  # free rotation's quaternion against the constant angular momentum rotation's (≈ rad / 2)
+
+pytestmark = pytest.mark.parametrize("name", list(ENGINES))
+
+
+def _engine(name: str):
+    pytest.importorskip(ENGINES[name])
+    return load_engine(name)
+
+
+def _tosses(states: list[np.ndarray], lengths: list[int]) -> Tosses:
+    """Tosses whose first frame is each state (13,) (position, quaternion w first, velocity, body ω), the later
+    frames copies of it (the peers read only frame 0 and the lengths)."""
+    frames = np.concatenate([np.repeat(s[None], n, 0) for s, n in zip(states, lengths)])
+    offsets = np.concatenate([[0], np.cumsum(lengths)])
+    return Tosses(frames[:, 0:3], frames[:, 3:7], frames[:, 7:10], frames[:, 10:13], offsets,
+                  np.arange(len(lengths)), CONTACTNETS_DT)  # fmt: skip
+
+
+def _state(position, quaternion, velocity, omega) -> np.ndarray:
+    q = np.asarray(quaternion, dtype=float)
+    return np.concatenate([position, q / np.linalg.norm(q), velocity, omega]).astype(float)
+
+
+def _quat_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Quaternions (F, 4) w first of rotation vectors (F, 3)."""
+    angle = np.linalg.norm(rotvec, axis=1, keepdims=True)
+    return np.concatenate([np.cos(angle / 2), 0.5 * np.sinc(angle / (2 * np.pi)) * rotvec], 1)
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, v1, w2, v2 = a[:, :1], a[:, 1:], b[:, :1], b[:, 1:]
+    return np.concatenate([w1 * w2 - (v1 * v2).sum(1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], 1)
+
+
+def test_rollout_has_one_frame_per_recorded_frame(name):
+    engine = _engine(name)
+    states = [_state([0.1, 0.0, 0.15], [1, 0.2, -0.1, 0.3], [0.5, -0.2, -1.0], [2.0, -1.0, 4.0]),
+              _state([-0.3, 0.2, 0.08], [0.9, 0.0, 0.4, 0.0], [-0.3, 0.4, 0.0], [0.0, 3.0, 0.0])]  # fmt: skip
+    tosses = _tosses(states, [5, 9])
+    position, quaternion = engine.simulate(tosses, nominal(engine.PARAMETERS), TABLE)
+    assert position.shape == (14, 3) and quaternion.shape == (14, 4)
+    for i, s in enumerate(states):
+        f = int(tosses.offsets[i])
+        np.testing.assert_array_equal(position[f], s[0:3])
+        np.testing.assert_array_equal(quaternion[f], s[3:7])
+    np.testing.assert_allclose(np.linalg.norm(quaternion, axis=1), 1.0, atol=1e-9)
+    assert not np.array_equal(position[1], position[0])  # (it moved)
+
+
+def test_free_flight_is_a_parabola_and_a_constant_rotation(name):
+    """No contact (1 m above the table): both engines integrate with semi-implicit Euler at h = dt / 10, whose
+    exact free-flight solution is p0 + v0 t + ½ g t (t + h), the parabola shifted by ½ g h t (1.1e-4 m after 5
+    frames); and with isotropic inertia ω is constant, so q(t) = exp(R ω_body t) q0."""
+    engine = _engine(name)
+    q0 = np.array([0.8, 0.3, -0.4, 0.2]) / np.linalg.norm([0.8, 0.3, -0.4, 0.2])
+    state = _state([0.2, -0.1, 1.0], q0, [0.7, -0.4, 1.5], [3.0, -5.0, 2.0])
+    frames = 6
+    position, quaternion = engine.simulate(_tosses([state], [frames]), nominal(engine.PARAMETERS), TABLE)
+    t = np.arange(frames)[:, None] * CONTACTNETS_DT
+    h, g = CONTACTNETS_DT / SUBSTEPS, np.array([0.0, 0.0, -GRAVITY])
+    euler = state[0:3] + state[7:10] * t + 0.5 * g * t * (t + h)
+    np.testing.assert_allclose(position, euler, rtol=0, atol=FLIGHT_TOL)
+    parabola = state[0:3] + state[7:10] * t + 0.5 * g * t**2
+    assert np.abs(position - parabola).max() <= 0.5 * GRAVITY * h * t.max() + FLIGHT_TOL
+    omega_world = rotate(q0[None], state[10:13][None])[0, 0]
+    expected = _quat_mul(_quat_exp(omega_world * t), np.repeat(q0[None], frames, 0))
+    sign = np.sign((quaternion * expected).sum(1, keepdims=True))  # (q and -q are the same rotation)
+    np.testing.assert_allclose(quaternion, sign * expected, rtol=0, atol=SPIN_TOL)
+
+
+def test_cube_dropped_flat_settles_on_the_table(name):
+    engine = _engine(name)
+    drop = _state([0.0, 0.0, TABLE + HALF_EXTENT + 0.01], [1, 0, 0, 0], [0, 0, 0], [0, 0, 0])
+    frames = 148  # 1 s
+    position, quaternion = engine.simulate(_tosses([drop], [frames]), nominal(engine.PARAMETERS), TABLE)
+    lowest = (position[:, None] + rotate(quaternion, box_vertices([HALF_EXTENT] * 3)))[..., 2].min(1)
+    assert np.abs(lowest[-30:] - TABLE).max() < SETTLE_TOL
+    assert np.abs(position[-30:] - position[-1]).max() < REST_TOL
+    assert rotation_angle(quaternion[-30:], quaternion[-1:].repeat(30, 0)).max() < REST_TOL / HALF_EXTENT
+
+
+def _npz(path, n: int = 10, length: int = 12) -> None:
+    """A tiny tosses .npz in the ContactNets layout (frames in half-widths, ω in rad/s)."""
+    rng = np.random.default_rng(3)
+    frames = []
+    for _ in range(n):
+        q = rng.normal(size=4)
+        start = _state([*rng.normal(size=2), 2.5], q, [*rng.normal(size=2), -2.0], rng.normal(size=3))
+        toss = np.repeat(start[None], length, 0)
+        toss[:, 2] -= np.linspace(0, 1.5, length)  # (a recorded fall; its values only enter the metrics)
+        frames.append(toss)
+    np.savez(path, frames=np.concatenate(frames), offsets=np.arange(n + 1) * length, toss_id=np.arange(n) + 100,
+             length_scale_m=np.float64(HALF_EXTENT), dt=np.float64(CONTACTNETS_DT))  # fmt: skip
+
+
+def test_fit_command_writes_its_files(name, tmp_path):
+    _engine(name)
+    pytest.importorskip("cma")
+    from typer.testing import CliRunner
+
+    from diffcontact.cli import app
+
+    source, out = tmp_path / "tosses.npz", tmp_path / "fit"
+    _npz(source)
+    args = ["peers", "fit", name, str(source), "--out", str(out), "--budget", "2", "--split", "0.6", "0.2", "0.2"]
+    result = CliRunner().invoke(app, [*args, "--train-tosses", "3", "--seed", "1"])
+    assert result.exit_code == 0, result.output
+    fitted = json.loads((out / "fitted.json").read_text())
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert fitted["train_tosses"] == 3 and fitted["optimiser"]["evaluations"] == 2 and fitted["seed"] == 1
+    assert set(fitted["parameters"]) == {p.name for p in load_engine(name).PARAMETERS}
+    for key in ("fitted", "nominal"):
+        assert metrics[key]["tosses"] == 2 and np.isfinite(metrics[key]["position_error_pct"])
+    with np.load(out / "predictions.npz") as z:
+        assert z["position"].shape == (24, 3) and z["quaternion"].shape == (24, 4)
+        assert z["toss_id"].tolist() == metrics["test_toss_id"] and z["offsets"].tolist() == [0, 12, 24]
+    full = CliRunner().invoke(app, [*args[:4], "--out", str(tmp_path / "all"), *args[6:], "--seed", "1"])
+    assert full.exit_code == 0, full.output
+    all_metrics = json.loads((tmp_path / "all" / "metrics.json").read_text())
+    all_fitted = json.loads((tmp_path / "all" / "fitted.json").read_text())
+    assert all_metrics["test_toss_id"] == metrics["test_toss_id"]  # (the same seed, the same test tosses)
+    assert set(fitted["train_toss_id"]) < set(all_fitted["train_toss_id"]) and all_fitted["train_tosses"] == 6
+    bad = CliRunner().invoke(app, [*args, "--train-tosses", "7"])  # (the training split holds 6)
+    assert bad.exit_code == 2 and "train_tosses = 7 is not in [1, 6]" in bad.output
+
+
+def test_errors_name_the_engine_and_the_install(name, monkeypatch):
+    with pytest.raises(ConfigError, match="engine 'drake' is not one of mujoco, bullet"):
+        load_engine("drake")
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, ENGINES[name], None)  # (as if not installed)
+        with pytest.raises(
+            MissingPeerPackageError, match=rf"'{ENGINES[name]}', not installed: pip install -e '\.\[peers\]'"
+        ):
+            load_engine(name)
+    engine = _engine(name)
+    with pytest.raises(ConfigError, match=f"{name}: friction = 5.0 is not in"):
+        engine.simulate(_tosses([_state([0, 0, 1], [1, 0, 0, 0], [0] * 3, [0] * 3)], [2]),
+                        nominal(engine.PARAMETERS) | {"friction": 5.0}, TABLE)  # fmt: skip
