@@ -138,14 +138,19 @@ def test_fit_command_writes_its_files(name, tmp_path):
     with np.load(out / "predictions.npz") as z:
         assert z["position"].shape == (24, 3) and z["quaternion"].shape == (24, 4)
         assert z["toss_id"].tolist() == metrics["test_toss_id"] and z["offsets"].tolist() == [0, 12, 24]
-    full = CliRunner().invoke(app, [*args[:4], "--out", str(tmp_path / "all"), *args[6:], "--seed", "1"])
+    full = CliRunner().invoke(
+        app, [*args[:4], "--out", str(tmp_path / "all"), *args[6:], "--seed", "1", "--twist", "poses"]
+    )
     assert full.exit_code == 0, full.output
     all_metrics = json.loads((tmp_path / "all" / "metrics.json").read_text())
     all_fitted = json.loads((tmp_path / "all" / "fitted.json").read_text())
     assert all_metrics["test_toss_id"] == metrics["test_toss_id"]  # (the same seed, the same test tosses)
     assert set(fitted["train_toss_id"]) < set(all_fitted["train_toss_id"]) and all_fitted["train_tosses"] == 6
+    assert fitted["initial_twist"] == "recorded" and all_fitted["initial_twist"] == "poses"
     bad = CliRunner().invoke(app, [*args, "--train-tosses", "7"])  # (the training split holds 6)
     assert bad.exit_code == 2 and "train_tosses = 7 is not in [1, 6]" in bad.output
+    bad = CliRunner().invoke(app, [*args, "--twist", "filtered"])
+    assert bad.exit_code == 2 and "twist = 'filtered' is not one of recorded, poses" in bad.output
 
 
 def test_errors_name_the_engine_and_the_install(name, monkeypatch):

@@ -544,6 +544,11 @@ def peers_fit(
     budget: int = typer.Option(
         None, "--budget", min=1, help="CMA-ES evaluations at most, each over every training toss (default 600)."
     ),
+    twist: str = typer.Option(
+        "recorded",
+        "--twist",
+        help="Initial twist: the source's recorded one, or poses (central differences, as diffcontact import).",
+    ),
 ) -> None:
     """Fit an engine's contact parameters to the training tosses (CMA-ES); score it and its nominal parameters on
     the test tosses."""
@@ -551,7 +556,7 @@ def peers_fit(
 
     with _user_errors():
         m = run_fit(engine, source, out, seed=seed, split=split, train_tosses=train_tosses,
-                    budget=budget or DEFAULT_BUDGET, echo=typer.echo)  # fmt: skip
+                    budget=budget or DEFAULT_BUDGET, twist=twist, echo=typer.echo)  # fmt: skip
     for name in ("fitted", "nominal"):
         r = {k: float("nan") for k in ("position_error_pct", "rotation_error_deg", "penetration_pct")} | m[name]
         typer.echo(f"{engine} {name}: position {r['position_error_pct']:.2f} %, rotation "

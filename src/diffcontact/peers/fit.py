@@ -13,6 +13,7 @@ that is not finite scores FAILED.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -33,6 +34,7 @@ ROTATION_WEIGHT = 50.0 * math.pi / 180.0  # % of the width per degree
 FAILED = 1e3  # objective of a rollout that is not finite
 SIGMA0 = 0.25  # CMA-ES's initial step, in fractions of each range
 DEFAULT_BUDGET = 600  # objective evaluations
+TWISTS = ("recorded", "poses")  # where the initial twist of a rollout comes from (run_fit)
 
 
 def score(engine, tosses: Tosses, params: dict[str, float], table_height: float) -> dict[str, float]:
@@ -98,7 +100,9 @@ def fit_parameters(
     }
 
 
-def _check_request(split: tuple[float, float, float], seed: int, budget: int) -> None:
+def _check_request(split: tuple[float, float, float], seed: int, budget: int, twist: str) -> None:
+    if twist not in TWISTS:
+        raise ConfigError(f"twist = {twist!r} is not one of {', '.join(TWISTS)}")
     if any(f < 0 for f in split) or abs(sum(split) - 1.0) > 1e-9 or split[2] <= 0:
         raise ConfigError(f"split = {list(split)}: fractions must be >= 0, sum to 1 and give a test part")
     if seed < 0:
@@ -115,15 +119,24 @@ def run_fit(
     split: tuple[float, float, float] = (0.8, 0.1, 0.1),
     train_tosses: int | None = None,
     budget: int = DEFAULT_BUDGET,
+    twist: str = "recorded",
     echo: Callable[[str], None] = print,
 ) -> dict:
     """Fit ``engine_name`` (mujoco or bullet) on the training tosses of ``source`` (``read_tosses``; split by
     ``split_tosses(n, split, seed)``; with ``train_tosses`` N, the first N of the training split in a seeded
     order), score it and its nominal parameters on the test tosses, and write OUT/fitted.json, OUT/metrics.json
-    and OUT/predictions.npz (the fitted model's test rollouts). Returns the metrics."""
-    _check_request(split, seed, budget)
+    and OUT/predictions.npz (the fitted model's test rollouts). ``twist``: the initial twist of each rollout, the
+    source's recorded one (``recorded``: backward differences, median-filtered) or the central differences of the
+    poses that ``diffcontact import`` gives our models (``poses``: forward at a toss's first frame). Returns the
+    metrics."""
+    _check_request(split, seed, budget, twist)
     engine = load_engine(engine_name)
     tosses = read_tosses(source)
+    if twist == "poses":
+        from diffcontact.data.measured import finite_difference_twist
+
+        velocity, omega = finite_difference_twist(tosses)
+        tosses = dataclasses.replace(tosses, velocity=velocity, omega=omega)
     parts = split_tosses(tosses.n, split, seed)
     train_index = parts["train"]
     if train_tosses is not None and not 1 <= train_tosses <= len(train_index):
@@ -150,6 +163,7 @@ def run_fit(
         "objective": "position_error_pct + rotation_weight * rotation_error_deg",
         "rotation_weight": ROTATION_WEIGHT,
         "seed": seed,
+        "initial_twist": twist,
         "test_toss_id": test.toss_id.tolist(),
     }
     out = Path(out)
@@ -166,6 +180,7 @@ def run_fit(
         "split": list(split),
         "train_tosses": train.n,
         "train_toss_id": train.toss_id.tolist(),
+        "initial_twist": twist,
         "cube": {"half_extent_m": HALF_EXTENT, "mass_kg": MASS, "inertia_kg_m2": INERTIA, "gravity_m_s2": GRAVITY},
         "timestep_s": tosses.dt / SUBSTEPS,
         "substeps": SUBSTEPS,
