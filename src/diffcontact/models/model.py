@@ -65,6 +65,7 @@ def build_model(
     seed: int = 0,
     solver: ContactSolver | None = None,
     reg: float | None = None,
+    potential: str = "mlp",
 ) -> nn.Module:
     """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters; or one of the
     baselines' ``BASELINE_NAMES`` (:func:`diffcontact.models.baselines.build_baseline`: hidden, layers, seed apply).
@@ -72,11 +73,14 @@ def build_model(
     ``solver`` (a :class:`~diffcontact.solver.ContactSolver`; default: one that raises on failure) solves the
     contact problems, e.g. ``ContactSolver(on_failure="count")`` to continue and count failures.  ``reg``
     replaces a CMr model's regularisation of the effective mass (A + reg·I, 1/kg; default ``CMR_REG``, the
-    paper's).
+    paper's).  ``potential``: "mlp" (the paper's learned network) or "gravity" (uniform gravity along −z, −y in 2-D,
+    of a learned strength g).
     """
     from diffcontact.models.baselines import BASELINE_NAMES, build_baseline
 
     if name in BASELINE_NAMES:  # (the paper's baselines: same interface, see models/baselines)
+        if potential != "mlp":
+            raise ConfigError(f"potential = {potential!r} is for the contact models; {name} learns its own network")
         if reg is not None:
             raise ConfigError(f"reg = {reg:g} is for the regularised models (CMr-...), not {name}")
         return build_baseline(task, name, hidden=hidden, layers=layers, seed=seed)
@@ -103,5 +107,7 @@ def build_model(
         hidden=hidden,
         layers=layers,
         seed=seed,
+        potential=potential,
+        points_per_body=system.points_per_body,
     )
     return ContactModelNet(sim, params, task.dt, name)

@@ -17,6 +17,8 @@ Structure stays known (bodies, constraints, contact geometry); the values are le
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -28,6 +30,7 @@ def _identity(x: torch.Tensor) -> torch.Tensor:
     return x
 
 
+POTENTIALS = ("mlp", "gravity")  # the learned potential: the paper's network, or gravity of a learned strength
 MU_TRANSFORMS = {"projected": _identity, "relu": torch.relu, "softplus": nn.functional.softplus}
 E_TRANSFORMS = {"projected": _identity, "hardsigmoid": nn.functional.hardsigmoid, "sigmoid": torch.sigmoid}
 
@@ -76,11 +79,31 @@ class MLPPotential(nn.Module, ForcePotential):
         return -(g @ linears[0].weight).reshape(x.shape)
 
 
+class LearnedGravity(nn.Module):
+    """V = g Σ_b m_b (c_b · up) with a learned strength g = exp(log_g) (m/s²), up the last axis (z in 3-D, y in
+    2-D); the centre of each body is its first point (``stride`` points per body).  g starts at 9.81·exp(0.1·N(0, 1)).
+    """
+
+    def __init__(self, stride: int, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64):
+        super().__init__()
+        start = math.log(9.81) + 0.1 * float(torch.randn((), generator=generator, dtype=dtype))
+        self.log_g = nn.Parameter(torch.tensor(start, dtype=dtype))
+        self.stride = stride
+
+    @property
+    def g(self) -> torch.Tensor:
+        return self.log_g.exp()
+
+    def forward(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
+        return self.g * (x[:, :: self.stride, -1] * masses.to(x)).sum(-1)  # (its force, by autograd, reads the masses)
+
+
 class LearnedParams(nn.Module):
     """Learnable :class:`~diffcontact.state.Params` for a system with ``n_bodies`` bodies.
 
     n_moments: moments per body (0 for point masses, d for extended bodies); n_points·d: potential input size;
-    n_slots: contact slots; homogeneous: one (μ, e) for all slots.  ``forward()`` returns Params.
+    n_slots: contact slots; homogeneous: one (μ, e) for all slots; potential: one of ``POTENTIALS`` (gravity: along
+    the last axis, each body's centre its first of ``points_per_body`` points).  ``forward()`` returns Params.
     """
 
     def __init__(
@@ -98,8 +121,12 @@ class LearnedParams(nn.Module):
         layers: int = 3,
         seed: int = 0,
         dtype: torch.dtype = torch.float64,
+        potential: str = "mlp",
+        points_per_body: int = 1,
     ):
         super().__init__()
+        if potential not in POTENTIALS:
+            raise ConfigError(f"potential = {potential!r} is not one of {list(POTENTIALS)}")
         if mu_transform not in MU_TRANSFORMS:
             raise ConfigError(f"mu_transform = {mu_transform!r} is not one of {list(MU_TRANSFORMS)}")
         if e_transform not in E_TRANSFORMS:
@@ -115,7 +142,10 @@ class LearnedParams(nn.Module):
         e_raw = torch.randn(n_coef, generator=gen, dtype=dtype)
         # (projected: in [0.2, 0.8], away from the bounds, where hardsigmoid(N(0, 1)) starts 0.3 % of the slots at 0)
         self.e_raw = nn.Parameter(0.2 + 0.6 * torch.sigmoid(e_raw) if e_transform == "projected" else e_raw)
-        self.potential = MLPPotential(n_points * d, hidden, layers, generator=gen).to(dtype)
+        if potential == "mlp":
+            self.potential = MLPPotential(n_points * d, hidden, layers, generator=gen).to(dtype)
+        else:
+            self.potential = LearnedGravity(points_per_body, generator=gen, dtype=dtype)
 
     @torch.no_grad()
     def project_(self) -> None:

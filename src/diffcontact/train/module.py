@@ -55,6 +55,8 @@ class ContactLightningModule(pl.LightningModule):
         mu_l1: float = 0.0,
         reg: float | None = None,
         train_loss: str = "l1",
+        potential: str = "mlp",
+        velocity_weight: float = 1.0,
     ):
         super().__init__()
         if schedule not in SCHEDULES:
@@ -80,6 +82,7 @@ class ContactLightningModule(pl.LightningModule):
             seed=seed,
             solver=self.solver,
             reg=reg,
+            potential=potential,
         )
         self.net = net.to(getattr(torch, dtype))
         self.baseline = model in BASELINE_NAMES
@@ -128,7 +131,8 @@ class ContactLightningModule(pl.LightningModule):
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
         px, pv = self.net(x[:, 0], v[:, 0], x.shape[1])
         err = (lambda r: r.abs()) if kind == "l1" else torch.square
-        loss = 0.5 * (err(px - x).mean() + err(pv - v).mean())
+        w = self.hparams.get("velocity_weight", 1.0)
+        loss = (err(px - x).mean() + w * err(pv - v).mean()) / (1.0 + w)
         if self.training and self.hparams.get("mu_l1", 0.0) and self.learns_contacts:
             # a constant pull of every μ toward 0: where all of a slot's contacts stick the data give μ no gradient
             # (a plateau above the truth), and Adam moves μ down at its full rate until they slide again

@@ -12,7 +12,7 @@ import lightning.pytorch as pl
 import torch
 
 from diffcontact.config import load_task
-from diffcontact.data.store import TMP_PREFIX, atomic_write, save_figure, versions, write_json
+from diffcontact.data.store import TMP_PREFIX, atomic_write, load_meta, save_figure, versions, write_json
 from diffcontact.errors import ConfigError
 from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
@@ -73,6 +73,8 @@ PRESETS = {
         coef_lr=1 / 6,
         mu_coef_lr=None,
         mu_l1=0.0,
+        potential="mlp",
+        velocity_weight=1.0,
     ),
     "published": dict(
         epochs=1000,
@@ -84,6 +86,8 @@ PRESETS = {
         coef_lr=1.0,
         mu_coef_lr=None,
         mu_l1=0.0,
+        potential="mlp",
+        velocity_weight=1.0,
     ),
 }
 
@@ -104,7 +108,7 @@ def task_training(task: str | Path) -> dict:
         elif key in ("epochs", "batch_size"):
             settings[key] = table.integer(key, lo=1)
         else:  # (rates > 0; a pull may be 0)
-            settings[key] = table.number(key, lo=0.0, lo_open=key != "mu_l1")
+            settings[key] = table.number(key, lo=0.0, lo_open=key not in ("mu_l1", "velocity_weight"))
     return settings
 
 
@@ -182,6 +186,7 @@ class _ShuffleState(pl.Callback):
 RUN_SETTINGS = (
     "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "mu_l1", "reg",
     "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
+    "potential", "velocity_weight",
 )  # fmt: skip
 ACCELERATORS = ("cpu", "gpu", "auto")
 
@@ -206,6 +211,8 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     recorded.setdefault("devices", 1)  # (and on one process)
     recorded.setdefault("mu_l1", 0.0)  # (and without a pull on μ)
     recorded.setdefault("num_nodes", 1)
+    recorded.setdefault("potential", "mlp")  # (and with the MLP potential
+    recorded.setdefault("velocity_weight", 1.0)  # on positions and velocities alike)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
         raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
@@ -335,7 +342,7 @@ def train_run(
                 coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, mu_l1=mu_l1, reg=reg, weight_decay=weight_decay,
                 mu_transform=mu_transform,
                 e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
-                num_nodes=num_nodes,
+                num_nodes=num_nodes, potential=None, velocity_weight=None,
             )  # fmt: skip
             args = _resume_settings(run, given, epochs)
         else:
@@ -378,6 +385,8 @@ def train_run(
                 coef_lr=settings["coef_lr"],
                 mu_coef_lr=settings["mu_coef_lr"],
                 mu_l1=settings["mu_l1"],
+                potential=settings["potential"],
+                velocity_weight=settings["velocity_weight"],
                 reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
                 weight_decay=1e-4 if weight_decay is None else weight_decay,
                 train_loss=train_loss or "l1",
@@ -441,6 +450,8 @@ def train_run(
                     "coef_lr",
                     "mu_coef_lr",
                     "mu_l1",
+                    "potential",
+                    "velocity_weight",
                 )
             },
         )
@@ -485,6 +496,9 @@ def train_run(
         # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
         train = data.splits["train"]
         summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
+        request = load_meta(data.folder)["request"]
+        if request.get("measured"):  # (the table's height is the importer's estimate, not learned)
+            summary["table_height_m"] = {"value": request["table_height_m"], "how": request["table_height_method"]}
         summary["best_checkpoint"] = best
         summary["epochs_trained"] = int(trainer.current_epoch)
         summary.update(totals)

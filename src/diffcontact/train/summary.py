@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 
 from diffcontact.dynamics.inertia import body_blocks, dense
+from diffcontact.models.params import LearnedGravity
 from diffcontact.state import Inertia
 from diffcontact.systems.base import System
 
@@ -142,6 +143,8 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> 
         out["moments"] = compare(learned.inertia.moments.detach().double().flatten(), moments.double().flatten())
     # (at the first frames of up to 64 chunks)
     out["inertia"] = inertia_spread(task.system, learned.inertia, truth.inertia, chunk_x[:64, 0].detach())
+    if isinstance(learned.potential, LearnedGravity):
+        out["g"] = float(learned.potential.g.detach())
     out["collisions"] = counts["collisions"].tolist()
     out["collisions_slipping"] = counts["slipping"].tolist()
     out["collisions_bound"] = counts["bound"].tolist()
