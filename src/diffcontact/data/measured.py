@@ -60,6 +60,16 @@ def finite_difference_twist(tosses: Tosses) -> tuple[np.ndarray, np.ndarray]:
     return velocity, omega
 
 
+def tosses_to_points(tosses: Tosses, table_height: float) -> tuple[np.ndarray, np.ndarray]:
+    """The 4-point states x, v (F, 4, 3) of every recorded frame, with the table moved to z = 0 and the velocities
+    from the poses (``finite_difference_twist``)."""
+    velocity, omega = finite_difference_twist(tosses)
+    position = tosses.position - np.array([0.0, 0.0, table_height])
+    arrays = (position, tosses.quaternion, velocity, omega)
+    x, v = pose_to_points(*(torch.from_numpy(a) for a in arrays))
+    return x.numpy(), v.numpy()
+
+
 def _windows(starts_of: list[np.ndarray], offsets: np.ndarray, window: int) -> np.ndarray:
     """Frame indices (N_w, window) of the windows starting at ``starts_of[i]`` (relative) in each toss i."""
     rows = [offsets[i] + s[:, None] + np.arange(window)[None] for i, s in enumerate(starts_of)]
@@ -135,13 +145,8 @@ def import_tosses(
         raise DatasetError(f"{source}: split test is empty ({tosses.n} tosses at {list(split)})")
 
     out = check_output(out, "--out", folder=True)
-    velocity, omega = finite_difference_twist(tosses)
-    position = tosses.position - np.array([0.0, 0.0, height])
-    x, v = (
-        a.numpy()
-        for a in pose_to_points(*(torch.from_numpy(a) for a in (position, tosses.quaternion, velocity, omega)))
-    )
-    lowest = (position[:, None, 2] + rotate(tosses.quaternion, box_vertices(half))[..., 2]).min(1)
+    x, v = tosses_to_points(tosses, height)
+    lowest = (tosses.position[:, None, 2] - height + rotate(tosses.quaternion, box_vertices(half))[..., 2]).min(1)
     contact = lowest <= CONTACT_HEIGHT
 
     arrays: dict[str, dict] = {}

@@ -13,7 +13,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from diffcontact.data.store import load_meta, load_split, save_arrays, versions, write_json
+from diffcontact.data.measured import tosses_to_points
+from diffcontact.data.store import load_meta, save_arrays, versions, write_json
 from diffcontact.data.tosses import Tosses, load_tosses
 from diffcontact.errors import DatasetError
 from diffcontact.eval.pose_metrics import box_toss_metrics
@@ -42,16 +43,15 @@ def recorded_tosses(folder: str | Path, split: str = "test") -> tuple[Tosses, di
     return tosses.subset(index), request
 
 
-def predict_tosses(net: nn.Module, folder: str | Path, split: str = "test", config=None) -> dict[str, np.ndarray]:
-    """Roll ``net`` (x0, v0, frames) -> (x, v) out over every toss of ``split`` from its first recorded state and
-    return the predicted poses in the source's frame: position (F, 3) m, quaternion (F, 4) w first, offsets, toss_id
-    (one predicted frame per recorded frame)."""
+def predict_tosses(net: nn.Module, folder: str | Path, split: str = "test") -> dict[str, np.ndarray]:
+    """Roll ``net`` (x0, v0, frames) -> (x, v) out over every toss of ``split`` from its first recorded state (as the
+    importer makes states: ``tosses_to_points``) and return the predicted poses in the source's frame: position
+    (F, 3) m, quaternion (F, 4) w first, offsets, toss_id (one predicted frame per recorded frame)."""
     tosses, request = recorded_tosses(folder, split)
-    data = load_split(folder, split, config)
+    x, v = tosses_to_points(tosses, request["table_height_m"])
+    first = tosses.offsets[:-1]
     lengths = tosses.lengths
-    if data.x.shape[0] != tosses.n or data.x.shape[1] < lengths.max():
-        raise DatasetError(f"{folder}: split {split} does not hold the {tosses.n} whole tosses its metadata names")
-    x_hat, v_hat = predict(net, data.x[:, 0], data.v[:, 0], int(lengths.max()))
+    x_hat, v_hat = predict(net, torch.from_numpy(x[first]), torch.from_numpy(v[first]), int(lengths.max()))
     keep = torch.from_numpy(np.arange(x_hat.shape[1])[None] < lengths[:, None])
     position, quaternion, _, _ = points_to_pose(x_hat[keep].double(), v_hat[keep].double())
     position = position.numpy() + np.array([0.0, 0.0, request["table_height_m"]])
