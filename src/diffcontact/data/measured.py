@@ -104,7 +104,7 @@ def import_tosses(
     seed: int = 0,
     all_test: bool = False,
     window: int = 8,
-    stride: int = 4,
+    stride: int = 8,
     echo=None,
 ) -> dict:
     """Import a ContactNets source (a folder of ``K.pt`` files or a tosses ``.npz``) into the dataset folder ``out``

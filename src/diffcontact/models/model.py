@@ -66,6 +66,7 @@ def build_model(
     solver: ContactSolver | None = None,
     reg: float | None = None,
     potential: str = "mlp",
+    moments_init: float = 1.0,
 ) -> nn.Module:
     """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters; or one of the
     baselines' ``BASELINE_NAMES`` (:func:`diffcontact.models.baselines.build_baseline`: hidden, layers, seed apply).
@@ -74,7 +75,8 @@ def build_model(
     contact problems, e.g. ``ContactSolver(on_failure="count")`` to continue and count failures.  ``reg``
     replaces a CMr model's regularisation of the effective mass (A + reg·I, 1/kg; default ``CMR_REG``, the
     paper's).  ``potential``: "mlp" (the paper's learned network) or "gravity" (uniform gravity along −z, −y in 2-D,
-    of a learned strength g).
+    of a learned strength g); ``moments_init``: the scale (m² per unit mass) around which the learned second moments
+    start (about the square of the bodies' size).
     """
     from diffcontact.models.baselines import BASELINE_NAMES, build_baseline
 
@@ -109,5 +111,6 @@ def build_model(
         seed=seed,
         potential=potential,
         points_per_body=system.points_per_body,
+        moments_init=moments_init,
     )
     return ContactModelNet(sim, params, task.dt, name)

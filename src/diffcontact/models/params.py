@@ -123,6 +123,7 @@ class LearnedParams(nn.Module):
         dtype: torch.dtype = torch.float64,
         potential: str = "mlp",
         points_per_body: int = 1,
+        moments_init: float = 1.0,
     ):
         super().__init__()
         if potential not in POTENTIALS:
@@ -136,7 +137,10 @@ class LearnedParams(nn.Module):
         self.mu_transform, self.e_transform = mu_transform, e_transform
         n_coef = 1 if homogeneous else n_slots
         self.log_mass = nn.Parameter(0.1 * torch.randn(n_bodies, generator=gen, dtype=dtype))
-        self.log_moments = nn.Parameter(0.1 * torch.randn(n_bodies, n_moments, generator=gen, dtype=dtype))
+        if not (moments_init > 0 and math.isfinite(moments_init)):
+            raise ConfigError(f"moments_init = {moments_init!r} is not a finite number > 0 (m² per unit mass)")
+        noise = 0.1 * torch.randn(n_bodies, n_moments, generator=gen, dtype=dtype)
+        self.log_moments = nn.Parameter(math.log(moments_init) + noise)  # (log 1 = 0: bit for bit the old start)
         mu_raw = torch.rand(n_coef, generator=gen, dtype=dtype)  # (drawn in both cases: the same later draws)
         self.mu_raw = nn.Parameter(torch.zeros_like(mu_raw) if mu_transform == "projected" else mu_raw)
         e_raw = torch.randn(n_coef, generator=gen, dtype=dtype)

@@ -57,6 +57,7 @@ class ContactLightningModule(pl.LightningModule):
         train_loss: str = "l1",
         potential: str = "mlp",
         velocity_weight: float = 1.0,
+        moments_init: float = 1.0,
     ):
         super().__init__()
         if schedule not in SCHEDULES:
@@ -83,6 +84,7 @@ class ContactLightningModule(pl.LightningModule):
             solver=self.solver,
             reg=reg,
             potential=potential,
+            moments_init=moments_init,
         )
         self.net = net.to(getattr(torch, dtype))
         self.baseline = model in BASELINE_NAMES

@@ -75,6 +75,7 @@ PRESETS = {
         mu_l1=0.0,
         potential="mlp",
         velocity_weight=1.0,
+        moments_init=1.0,
     ),
     "published": dict(
         epochs=1000,
@@ -88,6 +89,7 @@ PRESETS = {
         mu_l1=0.0,
         potential="mlp",
         velocity_weight=1.0,
+        moments_init=1.0,
     ),
 }
 
@@ -109,6 +111,7 @@ def task_training(task: str | Path) -> dict:
             settings[key] = table.integer(key, lo=1)
         else:  # (rates > 0; a pull may be 0)
             settings[key] = table.number(key, lo=0.0, lo_open=key not in ("mu_l1", "velocity_weight"))
+    # (moments_init: the scale in m² per unit mass at which the learned second moments start, about the body's size²)
     return settings
 
 
@@ -186,7 +189,7 @@ class _ShuffleState(pl.Callback):
 RUN_SETTINGS = (
     "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "mu_l1", "reg",
     "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
-    "potential", "velocity_weight",
+    "potential", "velocity_weight", "moments_init",
 )  # fmt: skip
 ACCELERATORS = ("cpu", "gpu", "auto")
 
@@ -213,6 +216,7 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     recorded.setdefault("num_nodes", 1)
     recorded.setdefault("potential", "mlp")  # (and with the MLP potential
     recorded.setdefault("velocity_weight", 1.0)  # on positions and velocities alike)
+    recorded.setdefault("moments_init", 1.0)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
         raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
@@ -342,7 +346,7 @@ def train_run(
                 coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, mu_l1=mu_l1, reg=reg, weight_decay=weight_decay,
                 mu_transform=mu_transform,
                 e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
-                num_nodes=num_nodes, potential=None, velocity_weight=None,
+                num_nodes=num_nodes, potential=None, velocity_weight=None, moments_init=None,
             )  # fmt: skip
             args = _resume_settings(run, given, epochs)
         else:
@@ -387,6 +391,7 @@ def train_run(
                 mu_l1=settings["mu_l1"],
                 potential=settings["potential"],
                 velocity_weight=settings["velocity_weight"],
+                moments_init=settings["moments_init"],
                 reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
                 weight_decay=1e-4 if weight_decay is None else weight_decay,
                 train_loss=train_loss or "l1",
@@ -452,6 +457,7 @@ def train_run(
                     "mu_l1",
                     "potential",
                     "velocity_weight",
+                    "moments_init",
                 )
             },
         )
