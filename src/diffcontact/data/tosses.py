@@ -203,3 +203,76 @@ def split_tosses(n: int, fractions: tuple[float, float, float], seed: int) -> di
         if len(part) == 0 and fractions[("train", "val", "test").index(name)] > 0:
             raise DatasetError(f"split {name} of {n} tosses at fraction {fractions} is empty (give more tosses)")
     return {k: np.sort(v) for k, v in parts.items()}
+
+
+def simulated_tosses(
+    task, n: int, seed: int, frames: int, position_noise: float = 2e-5, rotation_noise: float = 3e-4
+) -> Tosses:
+    """``n`` tosses of a box task simulated with its own Params (CM, float64), as a measurement system records them:
+    poses with Gaussian noise (``position_noise`` m per axis; a rotation of ``rotation_noise`` rad per axis), and
+    the sources' velocity columns (backward differences, then a 3-frame median filter). The default noise is the
+    ContactNets tosses' own: residuals of a local quadratic fit in free flight, 0.016-0.020 mm and 0.016°."""
+    import torch
+
+    from diffcontact.simulator import simulator_for
+    from diffcontact.systems.poses import matrix_to_quaternion, points_to_pose, quaternion_to_matrix
+
+    sim = simulator_for(task)
+    with torch.no_grad():
+        xs, vs, _ = sim.rollout(task.sample(n, seed), task.params, task.dt, frames)
+    position, quaternion, _, _ = points_to_pose(xs.double(), vs.double())  # (n, T, 3), (n, T, 4)
+    gen = torch.Generator().manual_seed(seed + 1)
+    position = position + position_noise * torch.randn(position.shape, generator=gen, dtype=torch.float64)
+    turn = rotation_noise * torch.randn(position.shape, generator=gen, dtype=torch.float64)
+    angle = turn.norm(dim=-1, keepdim=True)
+    half = torch.cat([torch.cos(angle / 2), torch.sinc(angle / (2 * torch.pi)) * turn / 2], -1)  # exp of turn
+    R = quaternion_to_matrix(quaternion) @ quaternion_to_matrix(half)
+    quaternion = matrix_to_quaternion(R)
+    p, q = position.reshape(-1, 3).numpy(), quaternion.reshape(-1, 4).numpy()
+    offsets = np.arange(n + 1, dtype=np.int64) * frames
+    tosses = Tosses(p, q, 0 * p, 0 * p, offsets, np.arange(n, dtype=np.int64), task.dt)
+    return _recorded_velocities(tosses)
+
+
+def _recorded_velocities(tosses: Tosses) -> Tosses:
+    """The tosses with the sources' velocity columns: backward differences of the poses, p_k − p_{k−1} over dt and
+    the rotation vector of R_{k−1}ᵀ R_k over dt (the first frame repeats the second's), then a 3-frame median
+    filter per component."""
+    import torch
+
+    from diffcontact.systems.poses import matrix_to_quaternion, quaternion_to_matrix, rotation_vector
+
+    R = quaternion_to_matrix(torch.from_numpy(tosses.quaternion))
+    rows = np.arange(len(tosses.position))
+    starts = np.isin(rows, tosses.offsets[:-1])
+    prev = np.where(starts, rows + 1, rows) - 1  # (k − 1; at a toss's first frame the pair of its second)
+    cur = np.where(starts, rows + 1, rows)
+    velocity = (tosses.position[cur] - tosses.position[prev]) / tosses.dt
+    omega = rotation_vector(matrix_to_quaternion(R[prev].mT @ R[cur])).numpy() / tosses.dt
+    ends = np.isin(rows, tosses.offsets[1:] - 1)
+    before, after = np.where(starts, rows, rows - 1), np.where(ends, rows, rows + 1)
+
+    def median3(a):
+        return np.median(np.stack([a[before], a, a[after]]), axis=0)
+
+    return Tosses(
+        tosses.position, tosses.quaternion, median3(velocity), median3(omega), tosses.offsets, tosses.toss_id, tosses.dt
+    )
+
+
+def save_contactnets_npz(path: str | Path, tosses: Tosses, length_scale: float = CONTACTNETS_LENGTH_SCALE) -> str:
+    """Write tosses in the ContactNets .npz layout (positions and velocities in units of ``length_scale``); returns
+    the file's SHA-256."""
+    from diffcontact.data.store import save_arrays
+
+    frames = np.concatenate(
+        [tosses.position / length_scale, tosses.quaternion, tosses.velocity / length_scale, tosses.omega], 1
+    )
+    arrays = {
+        "frames": frames,
+        "offsets": tosses.offsets,
+        "toss_id": tosses.toss_id,
+        "length_scale_m": np.float64(length_scale),
+        "dt": np.float64(tosses.dt),
+    }
+    return save_arrays(path, arrays)

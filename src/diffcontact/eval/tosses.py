@@ -79,10 +79,12 @@ def score_tosses(predicted: dict[str, np.ndarray], folder: str | Path, split: st
     )
 
 
-def evaluate_tosses(net: nn.Module, folder: str | Path, out: str | Path, split: str = "test", **record) -> dict:
-    """Predict and score every toss of ``split`` and write ``out``/metrics.json, predictions.npz and a figure of
-    recorded against predicted trajectories (tosses.png); ``record``: entries added to metrics.json (the run, its
-    config). Returns the metrics."""
+def evaluate_tosses(
+    net: nn.Module, folder: str | Path, out: str | Path, split: str = "test", pictures: bool = True, **record
+) -> dict:
+    """Predict and score every toss of ``split`` and write ``out``/metrics.json, predictions.npz, a figure of
+    recorded against predicted trajectories (tosses.png) and, with ``pictures``, a 3-D GIF of a few tosses
+    (tosses.gif); ``record``: entries added to metrics.json (the run, its config). Returns the metrics."""
     started = time.perf_counter()
     predicted = predict_tosses(net, folder, split)
     metrics = score_tosses(predicted, folder, split)
@@ -91,6 +93,8 @@ def evaluate_tosses(net: nn.Module, folder: str | Path, out: str | Path, split: 
     save_arrays(out / "predictions.npz", predicted)
     tosses, request = recorded_tosses(folder, split)
     draw_tosses(tosses, predicted, out / "tosses.png", request["table_height_m"])
+    if pictures:
+        toss_gif(tosses, predicted, out / "tosses.gif", request["half_extents_m"], request["table_height_m"])
     metrics = {
         **metrics,
         "split": split,
@@ -138,3 +142,50 @@ def draw_tosses(tosses: Tosses, predicted: dict[str, np.ndarray], path: Path, ta
     save_figure(fig, path, dpi=90)
     plt.close(fig)
     return Path(path)
+
+
+# the 12 edges of a box, as pairs of corner indices in box_vertices' order (x slowest): corners differing in one sign
+_EDGES = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+
+
+def toss_gif(
+    tosses: Tosses, predicted: dict[str, np.ndarray], path: Path, half_extents, table_height: float, every: int = 3
+) -> Path:
+    """A GIF of the first ``SHOWN_TOSSES`` tosses side by side in 3-D: the recorded box (black) and the predicted one
+    (red) every ``every`` frames, over the longest of them."""
+    from diffcontact.data.store import save_gif
+    from diffcontact.eval.plots import _pyplot
+    from diffcontact.eval.pose_metrics import box_vertices, rotate
+
+    plt = _pyplot()
+    shown = min(SHOWN_TOSSES, tosses.n)
+    corners = box_vertices(half_extents)
+    boxes = []
+    for i in range(shown):
+        rows = tosses.frames_of(i)
+        rec = tosses.position[rows, None] + rotate(tosses.quaternion[rows], corners)
+        pre = predicted["position"][rows, None] + rotate(predicted["quaternion"][rows], corners)
+        boxes.append((rec, pre))
+    T = max(len(r) for r, _ in boxes)
+    images = []
+    for t in range(0, T, every):
+        fig = plt.figure(figsize=(2.4 * shown, 2.6), dpi=70)
+        for i, (rec, pre) in enumerate(boxes):
+            ax = fig.add_subplot(1, shown, i + 1, projection="3d")
+            k = min(t, len(rec) - 1)
+            for box, color in ((rec[k], "k"), (pre[k], "tab:red")):
+                for a, b in _EDGES:
+                    ax.plot(*zip(box[a], box[b]), color=color, lw=1.2)
+            lo, hi = np.minimum(rec.min((0, 1)), pre.min((0, 1))), np.maximum(rec.max((0, 1)), pre.max((0, 1)))
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+            ax.set_zlim(table_height, max(hi[2], table_height + 0.1))
+            ax.set_title(f"toss {int(tosses.toss_id[i])}", fontsize=8)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_zticks([])
+        fig.tight_layout()
+        fig.canvas.draw()
+        images.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+        plt.close(fig)
+    return save_gif(path, images, every * tosses.dt)
