@@ -158,12 +158,24 @@ def import_contactnets(
     seed: int = typer.Option(0, "--seed", help="Seed of the split by toss."),
     all_test: bool = typer.Option(False, "--all-test", help="Every toss in the test split (evaluation only)."),
     task: str = typer.Option("CubeToss", "--task", help="The box task the tosses are of."),
+    train_tosses: int = typer.Option(
+        None, "--train-tosses", help="Keep only N training tosses (seeded, nested; val and test unchanged)."
+    ),
 ) -> None:
     """Import the ContactNets cube tosses (real poses of a real cube): SI units, the table at z = 0, splits by toss."""
     from diffcontact.data.measured import import_tosses
 
     with _user_errors():
-        import_tosses(source, out, task=task, split=split, seed=seed, all_test=all_test, echo=typer.echo)
+        import_tosses(
+            source,
+            out,
+            task=task,
+            split=split,
+            seed=seed,
+            all_test=all_test,
+            train_tosses=train_tosses,
+            echo=typer.echo,
+        )
 
 
 @app.command("train")

@@ -35,7 +35,14 @@ from diffcontact.data.store import (
     sha256,
     versions,
 )
-from diffcontact.data.tosses import SAMPLE, Tosses, read_tosses, resting_table_height, split_tosses
+from diffcontact.data.tosses import (
+    SAMPLE,
+    Tosses,
+    read_tosses,
+    resting_table_height,
+    split_tosses,
+    training_subset,
+)
 from diffcontact.errors import DatasetError
 from diffcontact.eval.pose_metrics import box_vertices, rotate
 from diffcontact.systems.poses import matrix_to_quaternion, pose_to_points, quaternion_to_matrix, rotation_vector
@@ -105,14 +112,16 @@ def import_tosses(
     all_test: bool = False,
     window: int = 8,
     stride: int = 8,
+    train_tosses: int | None = None,
     echo=None,
 ) -> dict:
     """Import a ContactNets source (a folder of ``K.pt`` files or a tosses ``.npz``) into the dataset folder ``out``
     for ``task`` (a box task); returns its metadata. ``split``: fractions (train, val, test) of the tosses, drawn
     by toss from ``seed``; ``all_test``: every toss in the test split (no training data). Training and validation
-    tosses are cut into windows of ``window`` frames, ``stride`` apart. DatasetError, with nothing written, for bad
-    input: a file in neither layout, a non-finite value, a quaternion not of unit norm, a toss shorter than the
-    window, an empty split."""
+    tosses are cut into windows of ``window`` frames, ``stride`` apart; ``train_tosses`` N: only N of the training
+    tosses (``training_subset``: seeded, nested; the validation and test tosses are the same for every N).
+    DatasetError, with nothing written, for bad input: a file in neither layout, a non-finite value, a quaternion
+    not of unit norm, a toss shorter than the window, an empty split."""
     started = time.perf_counter()
     cfg = load_task(task)
     if cfg.system != "box":
@@ -132,17 +141,21 @@ def import_tosses(
         )
     body = cfg.section("body")
     half = body.numbers("half_extents", length=3)
-    height, spread = resting_table_height(tosses, half)
     parts = (
         {"train": np.zeros(0, np.int64), "val": np.zeros(0, np.int64), "test": np.arange(tosses.n)}
         if all_test
         else split_tosses(tosses.n, split, seed)
     )
+    if not all_test:
+        parts["train"] = training_subset(parts["train"], train_tosses, seed)
     for name in ("train", "val") if not all_test else ():
         if len(parts[name]) == 0:
             raise DatasetError(f"{source}: split {name} is empty ({tosses.n} tosses at {list(split)})")
     if len(parts["test"]) == 0:
         raise DatasetError(f"{source}: split test is empty ({tosses.n} tosses at {list(split)})")
+    # (from the training and validation tosses: the test tosses stay unseen; with --all-test, from all)
+    seen = np.arange(tosses.n) if all_test else np.sort(np.concatenate([parts["train"], parts["val"]]))
+    height, spread = resting_table_height(tosses.subset(seen), half)
 
     out = check_output(out, "--out", folder=True)
     x, v = tosses_to_points(tosses, height)
@@ -177,12 +190,14 @@ def import_tosses(
             "split": list(split),
             "seed": seed,
             "all_test": all_test,
+            "train_tosses": len(parts["train"]),
             "window": window,
             "stride": stride,
             "toss_ids": {k: tosses.toss_id[parts[k]].tolist() for k in SPLITS},
             "table_height_m": height,
             "table_height_iqr_m": spread,
-            "table_height_method": "median over tosses of the lowest corner's z over each toss's last 5 frames",
+            "table_height_method": "median over the training and validation tosses (all with all_test) of the lowest "
+            "corner's z over each toss's last 5 frames",
             "velocity_method": "central differences of the recorded poses (one-sided at a toss's ends)",
             "contact_flag": f"lowest corner within {CONTACT_HEIGHT} m of the table",
             "half_extents_m": half,

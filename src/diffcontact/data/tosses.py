@@ -205,6 +205,16 @@ def split_tosses(n: int, fractions: tuple[float, float, float], seed: int) -> di
     return {k: np.sort(v) for k, v in parts.items()}
 
 
+def training_subset(train: np.ndarray, n: int | None, seed: int) -> np.ndarray:
+    """The first ``n`` of the training tosses ``train`` (positions) in an order drawn from ``seed`` (all if None):
+    the tosses of a training-size sweep, the same for every method, nested (a smaller N's are in every larger N's)."""
+    if n is None:
+        return train
+    if not 1 <= n <= len(train):
+        raise DatasetError(f"train_tosses = {n} is not in [1, {len(train)}] (the tosses of the training split)")
+    return np.sort(np.random.default_rng([seed, 1]).permutation(train)[:n])
+
+
 def simulated_tosses(
     task, n: int, seed: int, frames: int, position_noise: float = 2e-5, rotation_noise: float = 3e-4
 ) -> Tosses:
