@@ -582,3 +582,31 @@ def main() -> None:  # pragma: no cover - console entry point
 
 if __name__ == "__main__":  # pragma: no cover
     app()
+
+
+@bench_app.command("tosses")
+def bench_tosses(
+    source: str = typer.Argument(..., help="The tosses: a folder of ContactNets K.pt files, an .npz, or 'sample'."),
+    out: str = typer.Option("runs/toss_sweep", "--out", help="Folder of the sweep's datasets, runs and tables."),
+    sizes: list[int] = typer.Option(
+        [8, 16, 32, 64, 128, 256], "--size", "-n", help="Training tosses N (repeat; 0: all of the split's)."
+    ),
+    methods: list[str] = typer.Option(
+        [], "--method", "-m", help="Methods (repeat or comma-separated; default: all seven of the sweep)."
+    ),
+    seed: int = typer.Option(0, "--seed", help="Seed of the split by toss and of the training subsets."),
+    epochs: int = typer.Option(None, "--epochs", help="Training epochs (default: the task's)."),
+    threads: int = THREADS,
+) -> None:
+    """The training-size sweep on measured tosses: every method at N training tosses, scored on the same test
+    tosses; writes sweep.md, sweep.json and sweep.png (resumes where it stopped)."""
+    _threads(threads)
+    from diffcontact.eval.toss_sweep import METHODS, toss_sweep
+
+    chosen = tuple(_split(methods)) or METHODS
+    unknown = sorted(set(chosen) - set(METHODS))
+    if unknown:
+        raise typer.BadParameter(f"unknown methods {unknown}; known: {list(METHODS)}")
+    with _user_errors():
+        toss_sweep(source, out, sizes=tuple(sizes), methods=chosen, seed=seed, epochs=epochs, echo=typer.echo)
+    typer.echo(f"-> {out}/sweep.md")

@@ -191,6 +191,7 @@ def import_tosses(
             "seed": seed,
             "all_test": all_test,
             "train_tosses": len(parts["train"]),
+            "train_tosses_requested": train_tosses,
             "window": window,
             "stride": stride,
             "toss_ids": {k: tosses.toss_id[parts[k]].tolist() for k in SPLITS},

@@ -58,7 +58,7 @@ def evaluate_run(
     if measured(folder):  # (recorded tosses: whole tosses from their first state, scored in the field's metrics)
         record = {"task": name, "model": loaded.model_name, "run_dir": str(run), "checkpoint": str(loaded.checkpoint)}
         record |= {"learned": _learned(run), "config": loaded.config}
-        return evaluate_tosses(loaded.net, folder, out or run / "eval", split, **record)
+        return evaluate_tosses(loaded.net, folder, out or run / "eval", split, pictures, **record)
     if frames is None:
         from diffcontact.data.store import load_meta
 
@@ -128,7 +128,9 @@ def _learned(run: Path) -> dict | None:
     return {k: learned[k] for k in ("mu", "e", "mass_ratio", "moments", "inertia") if k in learned}
 
 
-def evaluate_nominal(task: str, data_root: str | Path, out: str | Path, split: str = "test") -> dict:
+def evaluate_nominal(
+    task: str, data_root: str | Path, out: str | Path, split: str = "test", pictures: bool = True
+) -> dict:
     """Evaluate a task's simulator with the task file's own (nominal) values on the measured tosses of its dataset
     (``data_root``: the dataset folder or its root) into ``out``; returns the metrics."""
     from diffcontact.models.model import known_model
@@ -139,4 +141,4 @@ def evaluate_nominal(task: str, data_root: str | Path, out: str | Path, split: s
     if not measured(folder):
         raise DatasetError(f"{folder}: --nominal evaluates measured tosses (diffcontact import), not simulated data")
     record = {"task": built.config.name, "model": "nominal (the task file's values, exact model CM)"}
-    return evaluate_tosses(known_model(built), folder, out, split, **record)
+    return evaluate_tosses(known_model(built), folder, out, split, pictures, **record)

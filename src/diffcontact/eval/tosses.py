@@ -46,13 +46,22 @@ def recorded_tosses(folder: str | Path, split: str = "test") -> tuple[Tosses, di
 def predict_tosses(net: nn.Module, folder: str | Path, split: str = "test") -> dict[str, np.ndarray]:
     """Roll ``net`` (x0, v0, frames) -> (x, v) out over every toss of ``split`` from its first recorded state (as the
     importer makes states: ``tosses_to_points``) and return the predicted poses in the source's frame: position
-    (F, 3) m, quaternion (F, 4) w first, offsets, toss_id (one predicted frame per recorded frame)."""
+    (F, 3) m, quaternion (F, 4) w first, offsets, toss_id (one predicted frame per recorded frame), and ``diverged``
+    {toss_id: first non-finite frame} of tosses whose prediction diverged, held at its last finite frame from there."""
     tosses, request = recorded_tosses(folder, split)
     x, v = tosses_to_points(tosses, request["table_height_m"])
     first = tosses.offsets[:-1]
     lengths = tosses.lengths
     x_hat, v_hat = predict(net, torch.from_numpy(x[first]), torch.from_numpy(v[first]), int(lengths.max()))
     keep = torch.from_numpy(np.arange(x_hat.shape[1])[None] < lengths[:, None])
+    # a model that diverged (non-finite frames from some frame on) is held at its last finite frame there
+    finite = (torch.isfinite(x_hat) & torch.isfinite(v_hat)).flatten(2).all(-1)  # (N, T)
+    frame = torch.arange(x_hat.shape[1]).expand_as(finite)
+    last_good = torch.where(finite, frame, 0).cummax(1).values
+    held = ~finite & keep
+    diverged = {int(tosses.toss_id[i]): int(held[i].nonzero()[0]) for i in held.any(1).nonzero().flatten().tolist()}
+    x_hat = torch.gather(x_hat, 1, last_good[..., None, None].expand_as(x_hat))
+    v_hat = torch.gather(v_hat, 1, last_good[..., None, None].expand_as(v_hat))
     position, quaternion, _, _ = points_to_pose(x_hat[keep].double(), v_hat[keep].double())
     position = position.numpy() + np.array([0.0, 0.0, request["table_height_m"]])
     return {
@@ -60,6 +69,7 @@ def predict_tosses(net: nn.Module, folder: str | Path, split: str = "test") -> d
         "quaternion": quaternion.numpy(),
         "offsets": tosses.offsets,
         "toss_id": tosses.toss_id,
+        "diverged": diverged,
     }
 
 
@@ -87,6 +97,7 @@ def evaluate_tosses(
     (tosses.gif); ``record``: entries added to metrics.json (the run, its config). Returns the metrics."""
     started = time.perf_counter()
     predicted = predict_tosses(net, folder, split)
+    diverged = predicted.pop("diverged")
     metrics = score_tosses(predicted, folder, split)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -100,6 +111,7 @@ def evaluate_tosses(
         "split": split,
         "data": str(folder),
         "table_height_m": request["table_height_m"],
+        "diverged": {"tosses": len(diverged), "first_nonfinite_frame": diverged, "held": "at the last finite frame"},
         "metric_definitions": {
             "position_error_pct": "mean over tosses of the mean over frames of |p_hat - p| / (2 half-extent) * 100",
             "rotation_error_deg": "the same mean of the geodesic angle 2 acos |<q_hat, q>| in degrees",

@@ -9,6 +9,7 @@ Relations (receiver ← sender), with weights over objects so that a "soft" obje
 - distance constraints: both directions (equality relations);
 - sphere pairs: between the bodies' first points, both directions;
 - spheres or disk rims against a plane: the body's first point ← the plane's object;
+- a box's corners against a plane: the body's first point ← the plane's object, once per body and plane;
 - stretch limits of a link a→b: both directions, one per limit side;
 - bend limits at b between links a→b→c: b ← mean(a, c) and mean(a, c) ← b, one per limit side.
 A relation whose receiver lies wholly on static objects is left out (its effect would be discarded).  Relation
@@ -22,7 +23,14 @@ from dataclasses import dataclass
 
 import torch
 
-from diffcontact.contact.kinds import AngleLimits, DiskRimPlanes, SpherePairs, SpherePlanes, StretchLimits
+from diffcontact.contact.kinds import (
+    AngleLimits,
+    DiskRimPlanes,
+    SpherePairs,
+    SpherePlanes,
+    StretchLimits,
+    VertexPlanes,
+)
 from diffcontact.systems.base import System
 
 F64 = torch.float64
@@ -103,6 +111,15 @@ def relation_graph(system: System) -> RelationGraph:
             radius[kind.pts] = r.to(F64)[:, None].expand_as(kind.pts).clone()
             for k, s in enumerate(slots):
                 rels.append(({int(kind.pts[k, 0]): 1.0}, {plane_object(kind.n[k], kind.c[k]): 1.0}, s))
+        elif isinstance(kind, VertexPlanes):  # (one relation per body and plane, its reach the farthest corner)
+            corner = (kind.weights[:, 1:] ** 2).sum(-1).sqrt().to(F64)  # (K,) |b| of each corner, m
+            seen: set[tuple[int, int]] = set()
+            for k, s in enumerate(slots):
+                body, plane = int(kind.pts[k, 0]), plane_object(kind.n[k], kind.c[k])
+                radius[body] = max(float(radius[body]), float(corner[k]))
+                if (body, plane) not in seen:
+                    seen.add((body, plane))
+                    rels.append(({body: 1.0}, {plane: 1.0}, s))
         elif isinstance(kind, StretchLimits):
             for a, b, s in zip(kind.a.tolist(), kind.b.tolist(), slots):
                 both({b: 1.0}, {a: 1.0}, s)

@@ -1,0 +1,146 @@
+"""The training-size sweep on measured tosses (the ContactNets protocol): every method trained on N = 8 … 256
+training tosses of one seeded split and scored on the same test tosses with the same metric code.
+
+Methods: the contact models and the paper's baselines (``diffcontact train``), the task's nominal values in the
+exact model (no training), and the MuJoCo and Bullet cubes fitted by CMA-ES (``diffcontact peers fit``, optional
+extra ``peers``). The sweep resumes: a cell whose metrics.json exists is read, not run again.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from diffcontact.data.store import load_meta, versions, write_json, write_text
+from diffcontact.errors import DiffContactError
+
+SIZES = (8, 16, 32, 64, 128, 256)
+METHODS = ("CM-CD-CLNN", "CMr-CD-CLNN", "MLP-CD-CLNN", "IN-CP-CLNN", "mujoco", "bullet", "nominal")
+PEERS = ("mujoco", "bullet")
+METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
+
+
+def _dataset(source, out: Path, n: int | None, seed: int, split, task: str) -> Path:
+    """The imported dataset of N training tosses (all with None), made once."""
+    from diffcontact.data.measured import import_tosses
+
+    folder = out / "data" / (f"N{n}" if n else "all") / task
+    try:
+        request = load_meta(folder)["request"]
+        made = (request["seed"], request["split"], request["train_tosses_requested"])
+        if made == (seed, list(split), n):
+            return folder
+    except (DiffContactError, KeyError):  # (missing, incomplete or of an older version: import it again)
+        pass
+    import_tosses(source, folder, task=task, split=split, seed=seed, train_tosses=n)
+    return folder
+
+
+def _cell(source, out: Path, method: str, n: int | None, folder: Path, seed: int, split, epochs, task, echo) -> dict:
+    """The test metrics of one method at one training size, from its metrics.json or by running it."""
+    from diffcontact.eval.evaluate import evaluate_nominal, evaluate_run
+
+    label = f"N{n}" if n else "all"
+    if method == "nominal":
+        run = out / "runs" / "nominal"
+    elif method in PEERS:
+        run = out / "peers" / label / method
+    else:
+        run = out / "runs" / label / method
+    metrics = run / ("eval/metrics.json" if method not in PEERS else "metrics.json")
+    if metrics.is_file():
+        return json.loads(metrics.read_text())
+    started = time.perf_counter()
+    if method == "nominal":
+        result = evaluate_nominal(task, folder, run / "eval", pictures=False)
+    elif method in PEERS:
+        from diffcontact.peers.fit import run_fit
+
+        result = run_fit(method, source, run, seed=seed, split=split, train_tosses=n, twist="poses", echo=echo)
+    else:
+        from diffcontact.train.run import train_run
+
+        resume = (run / "checkpoints" / "last.ckpt").is_file()
+        train_run(task, method, data_root=folder, out=run, epochs=epochs, seed=0, resume=resume, progress=False)
+        result = evaluate_run(run, data_root=folder, pictures=False)
+    seconds = time.perf_counter() - started
+    echo(f"{label} {method}: position error {_fitted(result)['position_error_pct']:.2f} % ({seconds:.0f} s)")
+    return result
+
+
+def _fitted(result: dict) -> dict:
+    """The metrics of a cell (a peer's metrics.json holds its fitted and nominal ones)."""
+    return result.get("fitted", result)
+
+
+def toss_sweep(
+    source: str | Path,
+    out: str | Path,
+    *,
+    sizes: tuple[int, ...] = SIZES,
+    methods: tuple[str, ...] = METHODS,
+    seed: int = 0,
+    split: tuple[float, float, float] = (0.8, 0.1, 0.1),
+    epochs: int | None = None,
+    task: str = "CubeToss",
+    echo=print,
+) -> dict:
+    """Run (or resume) the sweep into ``out`` and write ``out``/sweep.json, sweep.md (the tables) and sweep.png
+    (position error against N, one line per method). ``sizes``: numbers of training tosses (0: all of the split's);
+    ``epochs``: training epochs (default: the task's). Returns the table {method: {N: metrics}}."""
+    out = Path(out)
+    table: dict[str, dict[str, dict]] = {m: {} for m in methods}
+    for n in sizes:
+        folder = _dataset(source, out, n or None, seed, split, task)
+        for method in methods:
+            key = str(n or "all")
+            table[method][key] = _fitted(_cell(source, out, method, n or None, folder, seed, split, epochs, task, echo))
+    record = {"source": str(source), "seed": seed, "split": list(split), "sizes": list(sizes), "epochs": epochs}
+    write_json(out / "sweep.json", {"table": table, **record, "versions": versions()})
+    write_text(out / "sweep.md", sweep_markdown(table))
+    sweep_figure(table, out / "sweep.png")
+    return table
+
+
+def sweep_markdown(table: dict[str, dict[str, dict]]) -> str:
+    """The sweep's tables: one per metric, methods as rows and training sizes as columns; "–" where not measured."""
+    sizes = sorted(
+        {k for cells in table.values() for k in cells}, key=lambda k: (k == "all", 0 if k == "all" else int(k))
+    )
+    lines = []
+    for metric in METRICS:
+        lines += [f"**{metric}**", "", "| method | " + " | ".join(f"N = {k}" for k in sizes) + " |"]
+        lines.append("| --- |" + " --- |" * len(sizes))
+        for method, cells in table.items():
+            vals = [_number(cells[k][metric]) if k in cells else "–" for k in sizes]
+            lines.append(f"| {method} | " + " | ".join(vals) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _number(value: float) -> str:
+    return f"{value:.2f}" if abs(value) < 1e4 else f"{value:.2g} (diverged)"
+
+
+def sweep_figure(table: dict[str, dict[str, dict]], path: Path) -> Path:
+    """Position error (% of the width) against the number of training tosses, one line per method."""
+    from diffcontact.data.store import save_figure
+    from diffcontact.eval.plots import _pyplot
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.0, 4.0))
+    for method, cells in table.items():
+        pts = sorted((int(k), c["position_error_pct"]) for k, c in cells.items() if k != "all")
+        if pts:
+            ax.plot(*np.array(pts).T, marker="o", label=method)
+    ax.set_xscale("log", base=2)
+    ax.set_xlabel("training tosses N")
+    ax.set_ylabel("position error (% of the width)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=100)
+    plt.close(fig)
+    return path
