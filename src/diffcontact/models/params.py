@@ -30,7 +30,8 @@ def _identity(x: torch.Tensor) -> torch.Tensor:
     return x
 
 
-POTENTIALS = ("mlp", "gravity")  # the learned potential: the paper's network, or gravity of a learned strength
+# the potential: the paper's learned network, gravity of a learned strength, or the task's own (known, not learned)
+POTENTIALS = ("mlp", "gravity", "known")
 MU_TRANSFORMS = {"projected": _identity, "relu": torch.relu, "softplus": nn.functional.softplus}
 E_TRANSFORMS = {"projected": _identity, "hardsigmoid": nn.functional.hardsigmoid, "sigmoid": torch.sigmoid}
 
@@ -103,7 +104,8 @@ class LearnedParams(nn.Module):
 
     n_moments: moments per body (0 for point masses, d for extended bodies); n_points·d: potential input size;
     n_slots: contact slots; homogeneous: one (μ, e) for all slots; potential: one of ``POTENTIALS`` (gravity: along
-    the last axis, each body's centre its first of ``points_per_body`` points).  ``forward()`` returns Params.
+    the last axis, each body's centre its first of ``points_per_body`` points; known: ``known_potential``, fixed).
+    ``forward()`` returns Params.
     """
 
     def __init__(
@@ -124,6 +126,7 @@ class LearnedParams(nn.Module):
         potential: str = "mlp",
         points_per_body: int = 1,
         moments_init: float = 1.0,
+        known_potential=None,
     ):
         super().__init__()
         if potential not in POTENTIALS:
@@ -148,8 +151,12 @@ class LearnedParams(nn.Module):
         self.e_raw = nn.Parameter(0.2 + 0.6 * torch.sigmoid(e_raw) if e_transform == "projected" else e_raw)
         if potential == "mlp":
             self.potential = MLPPotential(n_points * d, hidden, layers, generator=gen).to(dtype)
-        else:
+        elif potential == "gravity":
             self.potential = LearnedGravity(points_per_body, generator=gen, dtype=dtype)
+        else:
+            if known_potential is None:
+                raise ConfigError('potential = "known" needs the task\'s potential (known_potential)')
+            self.potential = known_potential
 
     @torch.no_grad()
     def project_(self) -> None:
