@@ -42,9 +42,8 @@ def test_central_differences_are_exact_for_a_parabola_and_a_steady_spin():
     quaternion = np.stack([np.cos(angle / 2), 0 * t, 0 * t, np.sin(angle / 2)], 1)
     tosses = Tosses(position, quaternion, 0 * position, 0 * position, np.array([0, n]), np.array([0]), dt)
     velocity, omega = finite_difference_twist(tosses)
-    inner = slice(1, n - 1)
     exact = np.stack([0.3 + 0 * t, 0 * t, 0.5 - 9.8 * t], 1)
-    assert np.abs(velocity[inner] - exact[inner]).max() <= 1e-12
+    assert np.abs(velocity - exact).max() <= 1e-12  # (the ends too: one-sided differences of second order)
     assert np.abs(omega - [0, 0, 2.0]).max() <= 1e-12
 
 

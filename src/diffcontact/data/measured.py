@@ -5,9 +5,9 @@ From recorded poses (``data/tosses.py``) to the 4-point states of the box task (
 - **table at z = 0**: the table's height is estimated from the resting frames (the median lowest corner over each
   toss's last 5 frames) and subtracted from every z; it is recorded, and predictions are moved back.
 - **velocities from the poses**: central differences of positions, (p_{k+1} − p_{k−1}) / 2dt, and of rotations,
-  log(R_{k−1}ᵀ R_{k+1}) / 2dt (body frame); one-sided at a toss's ends. The sources' velocity columns are backward
-  differences, median-filtered: in free flight they lag a local quadratic fit of the positions by 0.032 m/s
-  (median over 4,099 frames of the ContactNets tosses), the central differences by 0.0027 m/s.
+  log(R_{k−1}ᵀ R_{k+1}) / 2dt (body frame); one-sided of second order at a toss's ends. The sources' velocity
+  columns are backward differences, median-filtered: in free flight they lag a local quadratic fit of the positions
+  by 0.032 m/s (median over 4,099 frames of the ContactNets tosses), the central differences by 0.0027 m/s.
 - **contact flags**: a frame is in contact where the lowest corner is within ``CONTACT_HEIGHT`` of the table.
 - **splits by toss** (seeded): the training and validation tosses are cut into windows of ``window`` frames
   (``stride`` apart) that are the split's trajectories and chunks; the test split holds whole tosses, padded to
@@ -53,17 +53,29 @@ TOSSES_FILE = "tosses.npz"
 
 def finite_difference_twist(tosses: Tosses) -> tuple[np.ndarray, np.ndarray]:
     """Velocities (F, 3) m/s and body-frame angular velocities (F, 3) rad/s of every frame from the poses: central
-    differences inside a toss, one-sided at its first and last frame."""
-    velocity, omega = np.empty_like(tosses.position), np.empty_like(tosses.position)
+    differences inside a toss, (p_{k+1} − p_{k−1}) / 2dt and log(R_{k−1}ᵀ R_{k+1}) / 2dt; at its first and last
+    frame the one-sided second-order ones, (−3 p_0 + 4 p_1 − p_2) / 2dt and (4 log(R_0ᵀ R_1) − log(R_0ᵀ R_2)) / 2dt
+    (mirrored at the end): all exact for a parabola and a steady spin. Tosses need 3 frames."""
+    dt = tosses.dt
     R = quaternion_to_matrix(torch.from_numpy(tosses.quaternion))
-    for i in range(tosses.n):
-        a, b = int(tosses.offsets[i]), int(tosses.offsets[i + 1])
-        prev = np.r_[a, a : b - 1]  # frame k − 1 (k itself at the first frame)
-        nxt = np.r_[a + 1 : b, b - 1]  # frame k + 1 (k itself at the last frame)
-        span = ((nxt - prev) * tosses.dt)[:, None]
-        velocity[a:b] = (tosses.position[nxt] - tosses.position[prev]) / span
-        relative = matrix_to_quaternion(R[prev].mT @ R[nxt])  # R_{k−1}ᵀ R_{k+1}: the turn in the body frame
-        omega[a:b] = rotation_vector(relative).numpy() / span
+    p = tosses.position
+
+    def turn(i, j):  # (the rotation vectors of R_iᵀ R_j, in the body frame of i)
+        return rotation_vector(matrix_to_quaternion(R[i].mT @ R[j])).numpy()
+
+    rows = np.arange(len(p))
+    first, last = np.isin(rows, tosses.offsets[:-1]), np.isin(rows, tosses.offsets[1:] - 1)
+    inner = ~(first | last)
+    velocity, omega = np.empty_like(p), np.empty_like(p)
+    k = rows[inner]
+    velocity[k] = (p[k + 1] - p[k - 1]) / (2 * dt)
+    omega[k] = turn(k - 1, k + 1) / (2 * dt)
+    k = rows[first]
+    velocity[k] = (-3 * p[k] + 4 * p[k + 1] - p[k + 2]) / (2 * dt)
+    omega[k] = (4 * turn(k, k + 1) - turn(k, k + 2)) / (2 * dt)
+    k = rows[last]
+    velocity[k] = (3 * p[k] - 4 * p[k - 1] + p[k - 2]) / (2 * dt)
+    omega[k] = (-4 * turn(k, k - 1) + turn(k, k - 2)) / (2 * dt)
     return velocity, omega
 
 
@@ -199,7 +211,7 @@ def import_tosses(
             "table_height_iqr_m": spread,
             "table_height_method": "median over the training and validation tosses (all with all_test) of the lowest "
             "corner's z over each toss's last 5 frames",
-            "velocity_method": "central differences of the recorded poses (one-sided at a toss's ends)",
+            "velocity_method": "central differences of the recorded poses (one-sided, second order, at a toss's ends)",
             "contact_flag": f"lowest corner within {CONTACT_HEIGHT} m of the table",
             "half_extents_m": half,
             "tosses_file": {"file": TOSSES_FILE, "sha256": tosses_sha},
