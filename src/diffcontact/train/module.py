@@ -58,6 +58,7 @@ class ContactLightningModule(pl.LightningModule):
         potential: str = "mlp",
         velocity_weight: float = 1.0,
         moments_init: float = 1.0,
+        axis_scale: float = 1.0,
     ):
         super().__init__()
         if schedule not in SCHEDULES:
@@ -87,6 +88,9 @@ class ContactLightningModule(pl.LightningModule):
             moments_init=moments_init,
         )
         self.net = net.to(getattr(torch, dtype))
+        q, n_points = self.task.system.points_per_body, self.task.system.n_points
+        axis = (torch.arange(n_points) % q) > 0  # (an extended body's axis points: all but its first)
+        self._point_scale = torch.where(axis, float(axis_scale), 1.0)
         self.baseline = model in BASELINE_NAMES
         self.learns_contacts = self.learned is not None and self.learned.n_slots > 0  # (μ and e)
 
@@ -134,7 +138,8 @@ class ContactLightningModule(pl.LightningModule):
         px, pv = self.net(x[:, 0], v[:, 0], x.shape[1])
         err = (lambda r: r.abs()) if kind == "l1" else torch.square
         w = self.hparams.get("velocity_weight", 1.0)
-        loss = (err(px - x).mean() + w * err(pv - v).mean()) / (1.0 + w)
+        scale = self._point_scale.to(x)[:, None]  # (P, 1): 1 at each body's centre, axis_scale at its axis points
+        loss = (err(scale * (px - x)).mean() + w * err(scale * (pv - v)).mean()) / (1.0 + w)
         if self.training and self.hparams.get("mu_l1", 0.0) and self.learns_contacts:
             # a constant pull of every μ toward 0: where all of a slot's contacts stick the data give μ no gradient
             # (a plateau above the truth), and Adam moves μ down at its full rate until they slide again

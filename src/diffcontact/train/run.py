@@ -76,6 +76,7 @@ PRESETS = {
         potential="mlp",
         velocity_weight=1.0,
         moments_init=1.0,
+        axis_scale=1.0,
     ),
     "published": dict(
         epochs=1000,
@@ -111,7 +112,9 @@ def task_training(task: str | Path) -> dict:
             settings[key] = table.integer(key, lo=1)
         else:  # (rates > 0; a pull may be 0)
             settings[key] = table.number(key, lo=0.0, lo_open=key not in ("mu_l1", "velocity_weight"))
-    # (moments_init: the scale in m² per unit mass at which the learned second moments start, about the body's size²)
+    # (moments_init: the scale in m² per unit mass at which the learned second moments start, about the body's size²;
+    # axis_scale: the weight in the loss of an extended body's axis points against its centre, in m: the body's size
+    # makes an axis point's error the displacement of its surface by a wrong rotation)
     return settings
 
 
@@ -189,7 +192,7 @@ class _ShuffleState(pl.Callback):
 RUN_SETTINGS = (
     "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "mu_l1", "reg",
     "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
-    "potential", "velocity_weight", "moments_init",
+    "potential", "velocity_weight", "moments_init", "axis_scale",
 )  # fmt: skip
 ACCELERATORS = ("cpu", "gpu", "auto")
 
@@ -217,6 +220,7 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     recorded.setdefault("potential", "mlp")  # (and with the MLP potential
     recorded.setdefault("velocity_weight", 1.0)  # on positions and velocities alike)
     recorded.setdefault("moments_init", 1.0)
+    recorded.setdefault("axis_scale", 1.0)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
         raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
@@ -347,6 +351,7 @@ def train_run(
                 mu_transform=mu_transform,
                 e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
                 num_nodes=num_nodes, potential=None, velocity_weight=None, moments_init=None,
+                axis_scale=None,
             )  # fmt: skip
             args = _resume_settings(run, given, epochs)
         else:
@@ -392,6 +397,7 @@ def train_run(
                 potential=settings["potential"],
                 velocity_weight=settings["velocity_weight"],
                 moments_init=settings["moments_init"],
+                axis_scale=settings["axis_scale"],
                 reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
                 weight_decay=1e-4 if weight_decay is None else weight_decay,
                 train_loss=train_loss or "l1",
@@ -458,6 +464,7 @@ def train_run(
                     "potential",
                     "velocity_weight",
                     "moments_init",
+                    "axis_scale",
                 )
             },
         )
