@@ -17,7 +17,9 @@ def test_cube_tosses_recorded_imported_and_learned(tmp_path):
     task = build_task("Cube")
     tosses = simulated_tosses(task, 16, seed=5, frames=60)
     save_contactnets_npz(tmp_path / "tosses.npz", tosses)
-    import_tosses(tmp_path / "tosses.npz", tmp_path / "data" / "Cube", task="Cube", split=(0.75, 0.125, 0.125))
+    # (short windows: many optimiser steps in a short test; the real tosses train on whole-toss windows)
+    folder = tmp_path / "data" / "Cube"
+    import_tosses(tmp_path / "tosses.npz", folder, task="Cube", split=(0.75, 0.125, 0.125), window=8, stride=8)
     summary = train_run(
         "Cube", data_root=tmp_path / "data", out=tmp_path / "run", epochs=40, batch_size=25, coef_lr=1.0,
         progress=False,

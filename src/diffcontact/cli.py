@@ -161,6 +161,8 @@ def import_contactnets(
     train_tosses: int = typer.Option(
         None, "--train-tosses", help="Keep only N training tosses (seeded, nested; val and test unchanged)."
     ),
+    window: int = typer.Option(80, "--window", help="Frames of a training window (every toss needs as many)."),
+    stride: int = typer.Option(80, "--stride", help="Frames between the starts of a toss's windows."),
 ) -> None:
     """Import the ContactNets cube tosses (real poses of a real cube): SI units, the table at z = 0, splits by toss."""
     from diffcontact.data.measured import import_tosses
@@ -174,6 +176,8 @@ def import_contactnets(
             seed=seed,
             all_test=all_test,
             train_tosses=train_tosses,
+            window=window,
+            stride=stride,
             echo=typer.echo,
         )
 

@@ -122,8 +122,8 @@ def import_tosses(
     split: tuple[float, float, float] = (0.8, 0.1, 0.1),
     seed: int = 0,
     all_test: bool = False,
-    window: int = 8,
-    stride: int = 8,
+    window: int = 80,
+    stride: int = 80,
     train_tosses: int | None = None,
     echo=None,
 ) -> dict:
