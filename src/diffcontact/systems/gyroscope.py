@@ -15,6 +15,7 @@ from diffcontact.contact.kinds import DiskRimPlanes
 from diffcontact.dynamics.potentials import Gravity, SumPotential
 from diffcontact.state import Inertia, Params, State
 from diffcontact.systems.base import Drawing, System, Task
+from diffcontact.systems.poses import hat
 from diffcontact.systems.common import (
     F64,
     coefficients,
@@ -37,14 +38,6 @@ def euler_zxz(phi: torch.Tensor, theta: torch.Tensor, psi: torch.Tensor) -> torc
         return torch.stack([o, z, z, z, c, -s, z, s, c], -1).reshape(*a.shape, 3, 3)
 
     return rz(phi) @ rx(theta) @ rz(psi)
-
-
-def hat(w: torch.Tensor) -> torch.Tensor:
-    """Skew matrices [w]× (B, 3, 3) of vectors w (B, 3)."""
-    z = torch.zeros_like(w[..., 0])
-    return torch.stack([z, -w[..., 2], w[..., 1], w[..., 2], z, -w[..., 0], -w[..., 1], w[..., 0], z], -1).reshape(
-        *w.shape[:-1], 3, 3
-    )
 
 
 TABLES = {
