@@ -15,7 +15,6 @@ from diffcontact.contact.kinds import DiskRimPlanes
 from diffcontact.dynamics.potentials import Gravity, SumPotential
 from diffcontact.state import Inertia, Params, State
 from diffcontact.systems.base import Drawing, System, Task
-from diffcontact.systems.poses import hat
 from diffcontact.systems.common import (
     F64,
     coefficients,
@@ -24,6 +23,7 @@ from diffcontact.systems.common import (
     rejection_sample,
     rigid_body_distances,
 )
+from diffcontact.systems.poses import hat
 
 
 def euler_zxz(phi: torch.Tensor, theta: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
