@@ -303,6 +303,11 @@ def evaluate(
     nominal: bool = typer.Option(
         False, "--nominal", help="RUN is a task: evaluate its simulator with the task file's own values (no training)."
     ),
+    on_solver_failure: str = typer.Option(
+        "raise",
+        "--on-solver-failure",
+        help="Measured tosses: raise, or count (zero impulses, counted in metrics.json).",
+    ),
 ) -> None:
     """Metrics of a run's best model on a split: on simulated data the 5-step error, error curve and true energy
     against the exact model; on measured tosses (diffcontact import) the position, rotation and penetration errors."""
@@ -314,8 +319,9 @@ def evaluate(
             m = evaluate_nominal(run, data or "data", out or f"runs/{run}-nominal/eval", split)
         else:
             m = evaluate_run(
-                run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures, out=out or None
-            )
+                run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures,
+                out=out or None, on_solver_failure=on_solver_failure,
+            )  # fmt: skip
     if "position_error_pct" in m:
         typer.echo(f"{m['task']} {m['model']}: position error {m['position_error_pct']:.2f} % of the width, "
                    f"rotation {m['rotation_error_deg']:.2f} deg, penetration {m['penetration_pct']:.3f} % "

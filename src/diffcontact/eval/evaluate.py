@@ -39,6 +39,7 @@ def evaluate_run(
     frames: int | None = None,
     pictures: bool = True,
     out: str | Path | None = None,
+    on_solver_failure: str = "raise",
 ) -> dict:
     """Evaluate the best checkpoint of ``run`` on ``split`` of its task's dataset (``data_root``: default the root
     the run was trained from) and write ``run/eval/``: metrics.json (atomically; the metrics, the run's config and
@@ -47,7 +48,8 @@ def evaluate_run(
 
     ``frames``: frames rolled out (default 70, or the split's if fewer).  ``task``: the task the caller expects
     (ConfigError for a run of another).  ``out``: the folder written (default ``run/eval``).  On measured tosses
-    (``diffcontact import``) the metrics are the field's (``eval/tosses.py``).  Returns the metrics.
+    (``diffcontact import``) the metrics are the field's (``eval/tosses.py``), and ``on_solver_failure`` "count"
+    continues past a failed contact problem (zero impulses, counted in metrics.json).  Returns the metrics.
     """
     from diffcontact.eval import animate, plots
 
@@ -58,7 +60,7 @@ def evaluate_run(
     if measured(folder):  # (recorded tosses: whole tosses from their first state, scored in the field's metrics)
         record = {"task": name, "model": loaded.model_name, "run_dir": str(run), "checkpoint": str(loaded.checkpoint)}
         record |= {"learned": _learned(run), "config": loaded.config}
-        return evaluate_tosses(loaded.net, folder, out or run / "eval", split, pictures, **record)
+        return evaluate_tosses(loaded.net, folder, out or run / "eval", split, pictures, on_solver_failure, **record)
     if frames is None:
         from diffcontact.data.store import load_meta
 

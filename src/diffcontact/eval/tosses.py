@@ -6,6 +6,7 @@ back to the source's table frame (the importer moved the table to z = 0) and sco
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -90,12 +91,27 @@ def score_tosses(predicted: dict[str, np.ndarray], folder: str | Path, split: st
 
 
 def evaluate_tosses(
-    net: nn.Module, folder: str | Path, out: str | Path, split: str = "test", pictures: bool = True, **record
+    net: nn.Module,
+    folder: str | Path,
+    out: str | Path,
+    split: str = "test",
+    pictures: bool = True,
+    on_solver_failure: str = "raise",
+    **record,
 ) -> dict:
     """Predict and score every toss of ``split`` and write ``out``/metrics.json, predictions.npz, a figure of
     recorded against predicted trajectories (tosses.png) and, with ``pictures``, a 3-D GIF of a few tosses
-    (tosses.gif); ``record``: entries added to metrics.json (the run, its config). Returns the metrics."""
+    (tosses.gif); ``record``: entries added to metrics.json (the run, its config). ``on_solver_failure``: "raise"
+    (a contact problem the solver fails on ends the evaluation) or "count" (its impulses are zero, and metrics.json
+    counts the failures). Returns the metrics."""
+    from diffcontact.models.model import ContactModelNet
+    from diffcontact.solver import ContactSolver
+
     started = time.perf_counter()
+    solver = ContactSolver(on_failure=on_solver_failure)
+    if isinstance(net, ContactModelNet):
+        sim = net.simulator
+        sim.contact_model = dataclasses.replace(sim.contact_model, solver=solver)
     predicted = predict_tosses(net, folder, split)
     diverged = predicted.pop("diverged")
     metrics = score_tosses(predicted, folder, split)
@@ -112,6 +128,7 @@ def evaluate_tosses(
         "data": str(folder),
         "table_height_m": request["table_height_m"],
         "diverged": {"tosses": len(diverged), "first_nonfinite_frame": diverged, "held": "at the last finite frame"},
+        "solver": {"problems": solver.problems, "failures": solver.failures_by_status, "on_failure": on_solver_failure},
         "metric_definitions": {
             "position_error_pct": "mean over tosses of the mean over frames of |p_hat - p| / (2 half-extent) * 100",
             "rotation_error_deg": "the same mean of the geodesic angle 2 acos |<q_hat, q>| in degrees",
