@@ -84,8 +84,8 @@ class ContactLightningModule(pl.LightningModule):
             seed=seed,
             solver=self.solver,
             reg=reg,
-            potential=potential,
-            moments_init=moments_init,
+            # (the potential and the moments' start are the contact models' settings: a baseline learns its own)
+            **({} if model in BASELINE_NAMES else {"potential": potential, "moments_init": moments_init}),
         )
         self.net = net.to(getattr(torch, dtype))
         q, n_points = self.task.system.points_per_body, self.task.system.n_points
