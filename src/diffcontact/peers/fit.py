@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from diffcontact.data.store import save_arrays, versions, write_json
-from diffcontact.data.tosses import Tosses, read_tosses, resting_table_height, split_tosses
+from diffcontact.data.tosses import Tosses, read_tosses, resting_table_height, split_tosses, training_subset
 from diffcontact.errors import ConfigError
 from diffcontact.eval.pose_metrics import box_toss_metrics
 from diffcontact.peers import ENGINES, load_engine, require
@@ -138,11 +138,7 @@ def run_fit(
         velocity, omega = finite_difference_twist(tosses)
         tosses = dataclasses.replace(tosses, velocity=velocity, omega=omega)
     parts = split_tosses(tosses.n, split, seed)
-    train_index = parts["train"]
-    if train_tosses is not None and not 1 <= train_tosses <= len(train_index):
-        raise ConfigError(f"train_tosses = {train_tosses} is not in [1, {len(train_index)}] (the training split)")
-    if train_tosses is not None:
-        train_index = np.random.default_rng([seed, 1]).permutation(train_index)[:train_tosses]
+    train_index = training_subset(parts["train"], train_tosses, seed)  # (the same tosses as diffcontact import's)
     train, test = tosses.subset(train_index), tosses.subset(parts["test"])
     # the table plane belongs to the setup, not to the fitted contact: from the whole training split for every N
     table_height, table_iqr = resting_table_height(tosses.subset(parts["train"]), [HALF_EXTENT] * 3)
