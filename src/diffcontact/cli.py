@@ -325,7 +325,8 @@ def evaluate(
     if "position_error_pct" in m:
         typer.echo(f"{m['task']} {m['model']}: position error {m['position_error_pct']:.2f} % of the width, "
                    f"rotation {m['rotation_error_deg']:.2f} deg, penetration {m['penetration_pct']:.3f} % "
-                   f"({m['tosses']} tosses, {m['frames']} frames)")  # fmt: skip
+                   f"({m['tosses']} tosses, {m['frames']} frames); {m['diverged']['tosses']} diverged, "
+                   f"{sum(m['solver']['failures'].values())} failed contact problems counted")  # fmt: skip
         return
     err5, energy = m["trajectory_error"], m["energy"]
     half = "n/a" if err5["ci95"] is None else f"{err5['ci95']:.3g}"

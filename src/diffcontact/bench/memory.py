@@ -6,7 +6,7 @@ in a fresh process of its own (spawned), so that one task's memory does not coun
 callback reads the process's resident set size (VmRSS of /proc/self/status) at the end of each training epoch.
 
 The first epochs raise the memory anyway (allocator pools, caches); a graph kept alive by a reference cycle raises
-it on every epoch after them (the FlatProjection cycle fixed in 2cab795 leaked about 24 MB an epoch on Gyro).  So
+it on every epoch after them (the FlatProjection cycle, since fixed, leaked about 24 MB an epoch on Gyro).  So
 the growth is measured from epoch ``SETTLE``: the highest RSS of epochs SETTLE..last minus the RSS at epoch SETTLE,
 and a task is "flat" if that is at most ``FLAT_MB``.
 """
