@@ -46,9 +46,12 @@ def rotate(quaternion: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def box_vertices(half_extents) -> np.ndarray:
-    """The 8 corners (8, 3) of a box with these half-extents (3,) in its body frame."""
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-    return signs * np.asarray(half_extents, dtype=np.float64)
+    """The 8 corners (8, 3) of a box with these half-extents (3,) in its body frame (the box system's own)."""
+    import torch
+
+    from diffcontact.systems.box import corners
+
+    return corners(torch.as_tensor(np.asarray(half_extents, dtype=np.float64))).numpy()
 
 
 def penetration(position: np.ndarray, quaternion: np.ndarray, half_extents, table_height: float) -> np.ndarray:
