@@ -594,24 +594,27 @@ def _frictionless_slide_limit(z, A, q, T, gamma, zero_mu, d):
 
 def _solve_passes(A, T, c, l_hat, on_q, on_l, d, idx, passes, options, start_margin, out) -> None:
     """Solve the elements ``idx`` into ``out``, pass after pass of ``passes`` (their tolerances), each pass only on
-    the elements the previous left INACCURATE or MAX_ITER.  Where a pass again ends INACCURATE or MAX_ITER, the
-    previous pass's answer is kept, CONVERGED, if it meets this pass's criterion (residual ≤ ``final_tol``) with the
-    lower residual: polishing from the looser start of pass 1 can end nearer the solution than pass 2 does on a
-    problem with a flat direction.  (Only then: an answer short of it, or an unbounded verdict, stays as this pass
-    leaves it, for the retries.)"""
+    the elements the previous left INACCURATE or MAX_ITER.  Where a pass again ends INACCURATE or MAX_ITER with a
+    higher residual than the previous pass's answer, that answer is kept: CONVERGED if it meets this pass's
+    criterion (residual ≤ ``final_tol``), else if usable, as INACCURATE (a stalled pass-1 answer is not kept: on an
+    unbounded problem it would set the scale of the retries).  On a problem with a face
+    of minimisers (a box resting on four corners: A of rank 6 in 12 contact rows) the method run to a tight
+    tolerance can stall at a residual 500 times above the one polishing reached from pass 1's looser start.  (An
+    unbounded verdict stays as this pass leaves it, for the retries.)"""
     kept = None
     for tols in passes:
         lanes.solve(A, T, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
         if kept is not None:
             now = out.status[idx]
             kept_res = kept["residual"]
-            better = (now == _INACCURATE) | (now == _MAX_ITER)
-            better &= (kept_res <= tols["final_tol"]) & (kept_res < out.residual[idx])
+            better = ((now == _INACCURATE) | (now == _MAX_ITER)) & (kept_res < out.residual[idx])
+            better &= (kept_res <= tols["final_tol"]) | (kept["status"] == _INACCURATE)
             if better.any():
                 rows = idx[better]
                 for name in lanes.IPMResult.OUTPUTS:
                     getattr(out, name)[rows] = kept[name][better]
-                out.status[rows] = _CONVERGED
+                met = rows[kept_res[better] <= tols["final_tol"]]
+                out.status[met] = _CONVERGED
         status = out.status if len(idx) == len(out.status) else out.status[idx]  # (idx is all of them, or sorted)
         if not np.count_nonzero(status):
             break
