@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from diffcontact.cli import app
-from diffcontact.data.measured import finite_difference_twist, import_tosses
+from diffcontact.data.measured import GRAVITY, finite_difference_twist, first_states, import_tosses
 from diffcontact.data.tosses import SAMPLE, Tosses, read_tosses
 from diffcontact.errors import DatasetError
 from diffcontact.eval.pose_metrics import box_toss_metrics
@@ -45,6 +45,41 @@ def test_central_differences_are_exact_for_a_parabola_and_a_steady_spin():
     exact = np.stack([0.3 + 0 * t, 0 * t, 0.5 - 9.8 * t], 1)
     assert np.abs(velocity - exact).max() <= 1e-12  # (the ends too: one-sided differences of second order)
     assert np.abs(omega - [0, 0, 2.0]).max() <= 1e-12
+
+
+def _free_flight(t, spin, p0=(0.1, -0.2, 0.5), v0=(0.4, 0.1, 0.3)):
+    """Poses (frames, 3), (frames, 4) of a cube in free flight: a parabola and a steady spin about (1, 2, 2)/3."""
+    position = np.asarray(p0) + np.outer(t, v0) - np.outer(0.5 * GRAVITY * t**2, [0, 0, 1])
+    angle, axis = spin * t, np.array([1.0, 2.0, 2.0]) / 3
+    quaternion = np.concatenate([np.cos(angle / 2)[:, None], np.sin(angle / 2)[:, None] * axis], 1)
+    return position, quaternion
+
+
+def test_first_states_fit_a_free_flight_exactly_and_average_out_pose_noise():
+    dt = 1 / 148
+    t = np.arange(40) * dt  # (the cube falls from 0.5 m: 40 frames of free flight, of which 15 are fitted)
+    position, quaternion = _free_flight(t, spin=6.0)
+    tosses = Tosses(position, quaternion, 0 * position, 0 * position, np.array([0, 40]), np.array([0]), dt)
+    p, v, w = first_states(tosses, 0.0, [HALF] * 3)
+    assert np.abs(p - position[0]).max() <= 1e-12 and np.abs(v - [0.4, 0.1, 0.3]).max() <= 1e-10
+    assert np.abs(w - 6.0 * np.array([1.0, 2.0, 2.0]) / 3).max() <= 1e-10
+    # with 1 mm of noise on the positions, the fit is ~10 times nearer than the one-sided difference
+    rng = np.random.default_rng(0)
+    errors = []
+    for _ in range(50):
+        noisy = Tosses(position + rng.normal(0, 1e-3, position.shape), quaternion, 0 * position, 0 * position,
+                       np.array([0, 40]), np.array([0]), dt)  # fmt: skip
+        differenced = finite_difference_twist(noisy)[0][0]
+        errors.append([np.linalg.norm(first_states(noisy, 0.0, [HALF] * 3)[1][0] - v[0]),
+                       np.linalg.norm(differenced - v[0])])  # fmt: skip
+    fitted, differenced = np.sqrt(np.mean(np.square(errors), 0))
+    assert fitted < differenced / 5
+    # a toss that starts on the table (its lowest corner within the clearance) keeps the recorded first frame
+    resting = Tosses(position - [0, 0, 0.5 - HALF], quaternion[:1].repeat(40, 0), 0 * position, 0 * position,
+                     np.array([0, 40]), np.array([0]), dt)  # fmt: skip
+    p, v, _ = first_states(resting, 0.0, [HALF] * 3)
+    assert np.array_equal(p[0], resting.position[0])
+    assert np.allclose(v[0], finite_difference_twist(resting)[0][0])
 
 
 def test_importing_the_shipped_sample(tmp_path):

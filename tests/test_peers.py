@@ -146,11 +146,11 @@ def test_fit_command_writes_its_files(name, tmp_path):
     all_fitted = json.loads((tmp_path / "all" / "fitted.json").read_text())
     assert all_metrics["test_toss_id"] == metrics["test_toss_id"]  # (the same seed, the same test tosses)
     assert set(fitted["train_toss_id"]) < set(all_fitted["train_toss_id"]) and all_fitted["train_tosses"] == 6
-    assert fitted["initial_twist"] == "recorded" and all_fitted["initial_twist"] == "poses"
+    assert fitted["initial_twist"] == "fitted" and all_fitted["initial_twist"] == "poses"
     bad = CliRunner().invoke(app, [*args, "--train-tosses", "7"])  # (the training split holds 6)
     assert bad.exit_code == 2 and "train_tosses = 7 is not in [1, 6]" in bad.output
     bad = CliRunner().invoke(app, [*args, "--twist", "filtered"])
-    assert bad.exit_code == 2 and "twist = 'filtered' is not one of recorded, poses" in bad.output
+    assert bad.exit_code == 2 and "twist = 'filtered' is not one of fitted, recorded, poses" in bad.output
 
 
 def test_errors_name_the_engine_and_the_install(name, monkeypatch):

@@ -12,7 +12,7 @@ import diffcontact as dc
 from diffcontact.data.generate import generate_dataset
 from diffcontact.errors import ConfigError
 from diffcontact.train.module import ContactLightningModule
-from diffcontact.train.run import resolve_preset, task_training, train_run
+from diffcontact.train.run import planned_epochs, resolve_preset, task_training, train_run
 from diffcontact.train.summary import learned_summary, slot_contacts
 
 
@@ -103,6 +103,18 @@ def test_task_file_training_table_adjusts_the_default_preset_only(tmp_path):
     with pytest.raises(ConfigError, match=r"training.mu_l1 = -1"):
         task_training(_task_file(tmp_path, "mu_l1 = -1.0\n"))
     assert task_training("BD5") == {"mu_coef_lr": 1.0, "mu_l1": 1e-5}
+
+
+def test_a_small_dataset_trains_for_the_task_files_fewest_optimiser_steps(data_root, tmp_path):
+    assert planned_epochs(30, 240, 8) == 30 and planned_epochs(30, 240, 1) == 240 and planned_epochs(3, 10, 4) == 3
+    with pytest.raises(ConfigError, match=r"training.min_steps = -1"):
+        task_training(_task_file(tmp_path, "min_steps = -1\n"))
+    task = _task_file(tmp_path, "min_steps = 9\n")
+    summary = train_run(str(task), epochs=1, out=tmp_path / "run", data_root=data_root, batch_size=1000,
+                        schedule="constant", progress=False)  # fmt: skip
+    # (one batch an epoch: the 16 training trajectories' chunks in one batch of 1000)
+    assert summary["optimiser_steps"] == 9 and summary["epochs_trained"] == 9
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["args"]["min_steps"] == 9
 
 
 def test_mu_learns_at_its_own_rate_where_given():

@@ -568,9 +568,10 @@ def peers_fit(
         None, "--budget", min=1, help="CMA-ES evaluations at most, each over every training toss (default 600)."
     ),
     twist: str = typer.Option(
-        "recorded",
+        "fitted",
         "--twist",
-        help="Initial twist: the source's recorded one, or poses (central differences, as diffcontact import).",
+        help="Initial state: fitted (a free-flight fit, the one our models start from), recorded (the source's "
+        "twist) or poses (one-sided differences of the poses).",
     ),
 ) -> None:
     """Fit an engine's contact parameters to the training tosses (CMA-ES); score it and its nominal parameters on

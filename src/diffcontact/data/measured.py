@@ -48,6 +48,11 @@ from diffcontact.eval.pose_metrics import box_vertices, rotate
 from diffcontact.systems.poses import matrix_to_quaternion, pose_to_points, quaternion_to_matrix, rotation_vector
 
 CONTACT_HEIGHT = 0.003  # m: a frame whose lowest corner is this close to the table is flagged as in contact
+# A toss's first state (``first_states``): fitted to up to FLIGHT_FRAMES frames of free flight (the lowest corner
+# above FLIGHT_CLEARANCE), if it starts with at least MIN_FLIGHT_FRAMES of them.  15 frames (0.1 s) measured best of
+# 4, 6, 10, 15, 25 and 40 on the validation tosses with the nominal model (docs/real_data.md).
+FLIGHT_FRAMES, MIN_FLIGHT_FRAMES, FLIGHT_CLEARANCE = 15, 3, 0.005
+GRAVITY = 9.81  # m/s²
 TOSSES_FILE = "tosses.npz"
 
 
@@ -79,11 +84,48 @@ def finite_difference_twist(tosses: Tosses) -> tuple[np.ndarray, np.ndarray]:
     return velocity, omega
 
 
-def tosses_to_points(tosses: Tosses, table_height: float) -> tuple[np.ndarray, np.ndarray]:
-    """The 4-point states x, v (F, 4, 3) of every recorded frame, with the table moved to z = 0 and the velocities
-    from the poses (``finite_difference_twist``)."""
+def lowest_corner(tosses: Tosses, table_height: float, half_extents) -> np.ndarray:
+    """(F,) height in m of every frame's lowest corner above the table."""
+    corners = rotate(tosses.quaternion, box_vertices(half_extents))[..., 2]
+    return (tosses.position[:, None, 2] - table_height + corners).min(1)
+
+
+def first_states(tosses: Tosses, table_height: float, half_extents) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The state each toss is rolled out from: position (n, 3) m, velocity (n, 3) m/s and body-frame angular
+    velocity (n, 3) rad/s at its first frame (its recorded quaternion is kept).
+
+    Where a toss starts in free flight (lowest corner above ``FLIGHT_CLEARANCE``) for at least
+    ``MIN_FLIGHT_FRAMES`` frames, they are the least-squares fit of a free flight to its first ``FLIGHT_FRAMES``
+    of them: p_k = p_0 + v_0 t_k − ½ g t_k² e_z (g = ``GRAVITY``) and log(R_0ᵀ R_k) = ω t_k (a torque-free spin,
+    steady for the cube's isotropic inertia); elsewhere the first frame of ``finite_difference_twist`` and the
+    recorded position.  A pose's noise enters a three-frame difference about 20 times amplified at 148 Hz; the fit
+    averages it out (measured on validation tosses in docs/real_data.md)."""
     velocity, omega = finite_difference_twist(tosses)
-    position = tosses.position - np.array([0.0, 0.0, table_height])
+    first = tosses.offsets[:-1]
+    position, velocity, omega = tosses.position[first].copy(), velocity[first], omega[first]
+    airborne = lowest_corner(tosses, table_height, half_extents) > FLIGHT_CLEARANCE
+    R = quaternion_to_matrix(torch.from_numpy(tosses.quaternion))
+    for i, start in enumerate(first.tolist()):
+        grounded = np.flatnonzero(~airborne[tosses.frames_of(i)])
+        m = min(FLIGHT_FRAMES, int(grounded[0]) if len(grounded) else int(tosses.lengths[i]))
+        if m < MIN_FLIGHT_FRAMES:
+            continue
+        t = np.arange(m) * tosses.dt
+        lifted = tosses.position[start : start + m] + np.outer(0.5 * GRAVITY * t**2, [0.0, 0.0, 1.0])
+        (position[i], velocity[i]), *_ = np.linalg.lstsq(np.stack([np.ones(m), t], 1), lifted, rcond=None)
+        turns = rotation_vector(matrix_to_quaternion(R[start].mT @ R[start : start + m])).numpy()
+        omega[i] = t @ turns / (t @ t)
+    return position, velocity, omega
+
+
+def tosses_to_points(tosses: Tosses, table_height: float, half_extents) -> tuple[np.ndarray, np.ndarray]:
+    """The 4-point states x, v (F, 4, 3) of every recorded frame, with the table moved to z = 0 and the velocities
+    from the poses: each toss's first frame from ``first_states``, the others from ``finite_difference_twist``."""
+    velocity, omega = finite_difference_twist(tosses)
+    position = tosses.position.copy()
+    first = tosses.offsets[:-1]
+    position[first], velocity[first], omega[first] = first_states(tosses, table_height, half_extents)
+    position = position - np.array([0.0, 0.0, table_height])
     arrays = (position, tosses.quaternion, velocity, omega)
     x, v = pose_to_points(*(torch.from_numpy(a) for a in arrays))
     return x.numpy(), v.numpy()
@@ -170,9 +212,8 @@ def import_tosses(
     height, spread = resting_table_height(tosses.subset(seen), half)
 
     out = check_output(out, "--out", folder=True)
-    x, v = tosses_to_points(tosses, height)
-    lowest = (tosses.position[:, None, 2] - height + rotate(tosses.quaternion, box_vertices(half))[..., 2]).min(1)
-    contact = lowest <= CONTACT_HEIGHT
+    x, v = tosses_to_points(tosses, height, half)
+    contact = lowest_corner(tosses, height, half) <= CONTACT_HEIGHT
 
     arrays: dict[str, dict] = {}
     for name in ("train", "val"):
@@ -211,7 +252,14 @@ def import_tosses(
             "table_height_iqr_m": spread,
             "table_height_method": "median over the training and validation tosses (all with all_test) of the lowest "
             "corner's z over each toss's last 5 frames",
-            "velocity_method": "central differences of the recorded poses (one-sided, second order, at a toss's ends)",
+            "velocity_method": "central differences of the recorded poses (one-sided, second order, at a toss's "
+            "last frame); at a toss's first frame, the free-flight fit of first_states",
+            "first_state": {
+                "flight_frames": FLIGHT_FRAMES,
+                "min_flight_frames": MIN_FLIGHT_FRAMES,
+                "flight_clearance_m": FLIGHT_CLEARANCE,
+                "gravity_m_s2": GRAVITY,
+            },
             "contact_flag": f"lowest corner within {CONTACT_HEIGHT} m of the table",
             "half_extents_m": half,
             "tosses_file": {"file": TOSSES_FILE, "sha256": tosses_sha},

@@ -59,7 +59,7 @@ def _cell(source, out: Path, method: str, n: int | None, folder: Path, seed: int
     elif method in PEERS:
         from diffcontact.peers.fit import run_fit
 
-        result = run_fit(method, source, run, seed=seed, split=split, train_tosses=n, twist="poses", echo=echo)
+        result = run_fit(method, source, run, seed=seed, split=split, train_tosses=n, echo=echo)
     else:
         from diffcontact.train.run import train_run
 

@@ -50,7 +50,7 @@ def predict_tosses(net: nn.Module, folder: str | Path, split: str = "test") -> d
     (F, 3) m, quaternion (F, 4) w first, offsets, toss_id (one predicted frame per recorded frame), and ``diverged``
     {toss_id: first non-finite frame} of tosses whose prediction diverged, held at its last finite frame from there."""
     tosses, request = recorded_tosses(folder, split)
-    x, v = tosses_to_points(tosses, request["table_height_m"])
+    x, v = tosses_to_points(tosses, request["table_height_m"], request["half_extents_m"])
     first = tosses.offsets[:-1]
     lengths = tosses.lengths
     x_hat, v_hat = predict(net, torch.from_numpy(x[first]), torch.from_numpy(v[first]), int(lengths.max()))

@@ -34,12 +34,15 @@ ROTATION_WEIGHT = 50.0 * math.pi / 180.0  # % of the width per degree
 FAILED = 1e3  # objective of a rollout that is not finite
 SIGMA0 = 0.25  # CMA-ES's initial step, in fractions of each range
 DEFAULT_BUDGET = 600  # objective evaluations
-TWISTS = ("recorded", "poses")  # where the initial twist of a rollout comes from (run_fit)
+TWISTS = ("fitted", "recorded", "poses")  # where the initial state of a rollout comes from (run_fit)
 
 
-def score(engine, tosses: Tosses, params: dict[str, float], table_height: float) -> dict[str, float]:
-    """``box_toss_metrics`` of the engine's rollouts of ``tosses`` plus ``objective``."""
-    return _metrics(tosses, *engine.simulate(tosses, params, table_height), table_height)
+def score(
+    engine, tosses: Tosses, params: dict[str, float], table_height: float, starts: Tosses | None = None
+) -> dict[str, float]:
+    """``box_toss_metrics`` of the engine's rollouts of ``tosses`` plus ``objective``; the rollouts start from the
+    first frames of ``starts`` (the same tosses with estimated first states), or of ``tosses``."""
+    return _metrics(tosses, *engine.simulate(starts or tosses, params, table_height), table_height)
 
 
 def _metrics(tosses: Tosses, position: np.ndarray, quaternion: np.ndarray, table_height: float) -> dict[str, float]:
@@ -54,10 +57,17 @@ def _metrics(tosses: Tosses, position: np.ndarray, quaternion: np.ndarray, table
 
 
 def fit_parameters(
-    engine, tosses: Tosses, table_height: float, budget: int, seed: int, echo: Callable[[str], None] = print
+    engine,
+    tosses: Tosses,
+    table_height: float,
+    budget: int,
+    seed: int,
+    echo: Callable[[str], None] = print,
+    starts: Tosses | None = None,
 ) -> dict:
-    """CMA-ES over ``engine.PARAMETERS`` on ``tosses``: whole generations while they fit in ``budget`` evaluations
-    (at least one); returns the best parameters, their metrics and the optimiser's history."""
+    """CMA-ES over ``engine.PARAMETERS`` on ``tosses`` (rolled out from the first frames of ``starts``, or of
+    ``tosses``): whole generations while they fit in ``budget`` evaluations (at least one); returns the best
+    parameters, their metrics and the optimiser's history."""
     cma = require("cma")
     space: tuple[Param, ...] = engine.PARAMETERS
     popsize = min(4 + int(3 * math.log(len(space))), budget)  # (CMA-ES's default, or the whole budget if smaller)
@@ -70,7 +80,7 @@ def fit_parameters(
         values = []
         for u in candidates:
             params = {p.name: p.value(x) for p, x in zip(space, u)}
-            m = score(engine, tosses, params, table_height)
+            m = score(engine, tosses, params, table_height, starts)
             values.append(m["objective"])
             if m["objective"] < best["objective"]:
                 best = m | {"params": params}
@@ -119,16 +129,16 @@ def run_fit(
     split: tuple[float, float, float] = (0.8, 0.1, 0.1),
     train_tosses: int | None = None,
     budget: int = DEFAULT_BUDGET,
-    twist: str = "recorded",
+    twist: str = "fitted",
     echo: Callable[[str], None] = print,
 ) -> dict:
     """Fit ``engine_name`` (mujoco or bullet) on the training tosses of ``source`` (``read_tosses``; split by
     ``split_tosses(n, split, seed)``; with ``train_tosses`` N, the first N of the training split in a seeded
     order), score it and its nominal parameters on the test tosses, and write OUT/fitted.json, OUT/metrics.json
-    and OUT/predictions.npz (the fitted model's test rollouts). ``twist``: the initial twist of each rollout, the
-    source's recorded one (``recorded``: backward differences, median-filtered) or the central differences of the
-    poses that ``diffcontact import`` gives our models (``poses``: forward at a toss's first frame). Returns the
-    metrics."""
+    and OUT/predictions.npz (the fitted model's test rollouts). ``twist``: the initial state of each rollout,
+    the one our models start from (``fitted``: ``data.measured.first_states``, a free-flight fit), the recorded
+    pose with the source's twist (``recorded``: backward differences, median-filtered) or with the one-sided
+    differences of the poses (``poses``). Returns the metrics."""
     _check_request(split, seed, budget, twist)
     engine = load_engine(engine_name)
     tosses = read_tosses(source)
@@ -142,17 +152,20 @@ def run_fit(
     train, test = tosses.subset(train_index), tosses.subset(parts["test"])
     # the table plane belongs to the setup, not to the fitted contact: from the whole training split for every N
     table_height, table_iqr = resting_table_height(tosses.subset(parts["train"]), [HALF_EXTENT] * 3)
+    train_starts = test_starts = None
+    if twist == "fitted":
+        train_starts, test_starts = (_with_first_states(t, table_height) for t in (train, test))
     echo(f"{engine_name}: {train.n} training tosses ({len(train.position)} frames), {test.n} test tosses, "
          f"table at z = {table_height * 1000:.3f} mm, budget {budget}, load {os.getloadavg()[0]:.2f}")  # fmt: skip
     load_before = os.getloadavg()
-    fit = fit_parameters(engine, train, table_height, budget, seed, echo)
+    fit = fit_parameters(engine, train, table_height, budget, seed, echo, train_starts)
     start = nominal(engine.PARAMETERS)
-    position, quaternion = engine.simulate(test, fit["params"], table_height)
+    position, quaternion = engine.simulate(test_starts or test, fit["params"], table_height)
     metrics = {
         "engine": engine_name,
         "split": "test",
         "fitted": _metrics(test, position, quaternion, table_height),
-        "nominal": score(engine, test, start, table_height),
+        "nominal": score(engine, test, start, table_height, test_starts),
         "table_height_m": table_height,
         "table_height_iqr_m": table_iqr,
         "table_height_from": f"resting frames of the training split ({len(parts['train'])} tosses)",
@@ -170,7 +183,7 @@ def run_fit(
         "nominal_parameters": start,
         "bounds": {p.name: {"low": p.low, "high": p.high, "log": p.log, "unit": p.unit} for p in engine.PARAMETERS},
         "train_metrics": fit["train_metrics"],
-        "train_metrics_nominal": score(engine, train, start, table_height),
+        "train_metrics_nominal": score(engine, train, start, table_height, train_starts),
         "optimiser": fit["optimiser"],
         "seed": seed,
         "split": list(split),
@@ -190,3 +203,16 @@ def run_fit(
         {"position": position, "quaternion": quaternion, "offsets": test.offsets, "toss_id": test.toss_id},
     )
     return metrics
+
+
+def _with_first_states(tosses: Tosses, table_height: float) -> Tosses:
+    """``tosses`` with each toss's first position, velocity and angular velocity replaced by the state our models
+    start from (``data.measured.first_states``)."""
+    from diffcontact.data.measured import first_states
+
+    first = tosses.offsets[:-1]
+    arrays = {k: getattr(tosses, k).copy() for k in ("position", "velocity", "omega")}
+    arrays["position"][first], arrays["velocity"][first], arrays["omega"][first] = first_states(
+        tosses, table_height, [HALF_EXTENT] * 3
+    )
+    return dataclasses.replace(tosses, **arrays)

@@ -53,6 +53,10 @@ class ContactDataModule(pl.LightningDataModule):
         self.setup()
         return (ChunkDataset if self.mode == "chunks" else PairDataset)(self.splits[name])
 
+    def batches_per_epoch(self, processes: int = 1) -> int:
+        """Optimiser steps an epoch takes: batches of the training split on each of ``processes`` processes."""
+        return -(-len(self._dataset("train")) // (self.batch_size * processes))
+
     def train_dataloader(self) -> DataLoader:
         gen = torch.Generator().manual_seed(self.seed)
         return DataLoader(

@@ -77,6 +77,7 @@ PRESETS = {
         velocity_weight=1.0,
         moments_init=1.0,
         axis_scale=1.0,
+        min_steps=0,
     ),
     "published": dict(
         epochs=1000,
@@ -91,8 +92,16 @@ PRESETS = {
         potential="mlp",
         velocity_weight=1.0,
         moments_init=1.0,
+        min_steps=0,
     ),
 }
+
+
+def planned_epochs(epochs: int, min_steps: int, batches_per_epoch: int) -> int:
+    """The epochs a run trains: ``epochs``, or more where that many epochs of ``batches_per_epoch`` optimiser steps
+    fall short of ``min_steps`` (a small dataset: 8 real tosses make one batch an epoch).  The learning-rate
+    schedule runs over these epochs."""
+    return max(epochs, -(-min_steps // max(batches_per_epoch, 1)))
 
 
 def task_training(task: str | Path) -> dict:
@@ -108,13 +117,14 @@ def task_training(task: str | Path) -> dict:
             if not isinstance(table.get(key), str):
                 raise ConfigError(f"training.{key} = {table.get(key)!r} is not a string")
             settings[key] = table.get(key)
-        elif key in ("epochs", "batch_size"):
-            settings[key] = table.integer(key, lo=1)
+        elif key in ("epochs", "batch_size", "min_steps"):
+            settings[key] = table.integer(key, lo=0 if key == "min_steps" else 1)
         else:  # (rates > 0; a pull may be 0)
             settings[key] = table.number(key, lo=0.0, lo_open=key not in ("mu_l1", "velocity_weight"))
     # (moments_init: the scale in m² per unit mass at which the learned second moments start, about the body's size²;
     # axis_scale: the weight in the loss of an extended body's axis points against its centre, in m: the body's size
-    # makes an axis point's error the displacement of its surface by a wrong rotation)
+    # makes an axis point's error the displacement of its surface by a wrong rotation; min_steps: the fewest optimiser
+    # steps a run takes, its epochs raised to reach them on a small dataset: ``planned_epochs``)
     return settings
 
 
@@ -192,7 +202,7 @@ class _ShuffleState(pl.Callback):
 RUN_SETTINGS = (
     "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "mu_l1", "reg",
     "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
-    "potential", "velocity_weight", "moments_init", "axis_scale",
+    "potential", "velocity_weight", "moments_init", "axis_scale", "min_steps",
 )  # fmt: skip
 ACCELERATORS = ("cpu", "gpu", "auto")
 
@@ -221,6 +231,7 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
     recorded.setdefault("velocity_weight", 1.0)  # on positions and velocities alike)
     recorded.setdefault("moments_init", 1.0)
     recorded.setdefault("axis_scale", 1.0)
+    recorded.setdefault("min_steps", 0)  # (and for the epochs asked for)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
         raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
@@ -351,7 +362,7 @@ def train_run(
                 mu_transform=mu_transform,
                 e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
                 num_nodes=num_nodes, potential=None, velocity_weight=None, moments_init=None,
-                axis_scale=None,
+                axis_scale=None, min_steps=None,
             )  # fmt: skip
             args = _resume_settings(run, given, epochs)
         else:
@@ -398,6 +409,7 @@ def train_run(
                 velocity_weight=settings["velocity_weight"],
                 moments_init=settings["moments_init"],
                 axis_scale=settings["axis_scale"],
+                min_steps=settings["min_steps"],
                 reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
                 weight_decay=1e-4 if weight_decay is None else weight_decay,
                 train_loss=train_loss or "l1",
@@ -486,7 +498,7 @@ def train_run(
             tmp.unlink(missing_ok=True)
         start = last if resume and last.is_file() else None
         trainer = pl.Trainer(
-            max_epochs=args["epochs"],
+            max_epochs=planned_epochs(args["epochs"], args["min_steps"], data.batches_per_epoch(processes)),
             plugins=[_AtomicCheckpointIO()],
             logger=loggers,
             callbacks=[checkpoints, _ShuffleState()],
@@ -514,6 +526,7 @@ def train_run(
             summary["table_height_m"] = {"value": request["table_height_m"], "how": request["table_height_method"]}
         summary["best_checkpoint"] = best
         summary["epochs_trained"] = int(trainer.current_epoch)
+        summary["optimiser_steps"] = int(trainer.global_step)
         summary.update(totals)
         summary["processes"] = processes
         summary["rank"] = trainer.global_rank  # (0: the process that wrote the files)
