@@ -13,7 +13,7 @@ from diffcontact.cli import app
 from diffcontact.data.measured import GRAVITY, finite_difference_twist, first_states, import_tosses
 from diffcontact.data.tosses import SAMPLE, Tosses, read_tosses
 from diffcontact.errors import DatasetError
-from diffcontact.eval.pose_metrics import box_toss_metrics
+from diffcontact.eval.pose_metrics import box_toss_metrics, face_down
 
 HALF = 0.0524
 
@@ -32,6 +32,15 @@ def test_the_three_metrics_against_hand_computed_values():
     assert m["rotation_error_deg"] == pytest.approx(((0 + 45) / 2 + 0) / 2)
     assert m["penetration_pct"] == pytest.approx(((0 + 0) / 2 + 10) / 2)
     assert (m["tosses"], m["frames"]) == (2, 3)
+    # each toss's last frame: the first turned 30° about x (its −z face still down), the second turned over (180°)
+    turn_30 = [math.cos(math.pi / 12), math.sin(math.pi / 12), 0, 0]
+    m = box_toss_metrics(ph, np.array([[1.0, 0, 0, 0], turn_30, [1.0, 0, 0, 0]]), p, q, offsets, [HALF] * 3, 0.0)
+    assert m["same_final_face"] == 2 and m["position_error_pct_other_face"] is None
+    m = box_toss_metrics(ph, np.array([[1.0, 0, 0, 0], turn_30, [0.0, 1.0, 0, 0]]), p, q, offsets, [HALF] * 3, 0.0)
+    assert m["same_final_face"] == 1
+    assert m["position_error_pct_same_face"] == pytest.approx(50) and m["position_error_pct_other_face"] == 50
+    tilted = np.array([math.cos(math.pi / 3), math.sin(math.pi / 3), 0, 0])  # 120° about x: +y up, −y down
+    assert face_down(np.array([[1.0, 0, 0, 0], tilted, [0.0, 1.0, 0, 0]])).tolist() == [4, 2, 5]
 
 
 def test_central_differences_are_exact_for_a_parabola_and_a_steady_spin():

@@ -75,6 +75,10 @@ def box_toss_metrics(
     - ``rotation_error_deg``: the geodesic angle between predicted and recorded rotations, in degrees;
     - ``penetration_pct``: the depth of the predicted box's lowest corner below the table, in % of the width.
 
+    Also where the error comes from: ``same_final_face``, the number of tosses whose last predicted frame has the
+    recorded one's face down (``face_down``), and ``position_error_pct`` over those tosses and over the others
+    (``position_error_pct_same_face``, ``position_error_pct_other_face``; None where there is none).
+
     position_hat, position: (frames, 3) m; quaternion_hat, quaternion: (frames, 4) w, x, y, z; offsets
     (n_tosses + 1,); half_extents (3,) m; table_height: the table plane's z in m.
     """
@@ -86,10 +90,24 @@ def box_toss_metrics(
     pos = np.linalg.norm(position_hat - position, axis=1) / width * 100.0
     rot = np.degrees(rotation_angle(quaternion_hat, quaternion))
     pen = penetration(position_hat, quaternion_hat, half_extents, table_height) / width * 100.0
+    per_toss = per_toss_mean(pos, offsets)
+    last = np.asarray(offsets[1:]) - 1
+    same = face_down(quaternion_hat[last]) == face_down(quaternion[last])
     return {
-        "position_error_pct": float(per_toss_mean(pos, offsets).mean()),
+        "position_error_pct": float(per_toss.mean()),
         "rotation_error_deg": float(per_toss_mean(rot, offsets).mean()),
         "penetration_pct": float(per_toss_mean(pen, offsets).mean()),
         "tosses": int(len(offsets) - 1),
         "frames": int(len(position)),
+        "same_final_face": int(same.sum()),
+        "position_error_pct_same_face": float(per_toss[same].mean()) if same.any() else None,
+        "position_error_pct_other_face": float(per_toss[~same].mean()) if not same.all() else None,
     }
+
+
+def face_down(quaternion: np.ndarray) -> np.ndarray:
+    """Which face of a box points down in each frame (frames, 4): 0 … 5 for the body's −x, +x, −y, +y, −z, +z face,
+    the one whose outward normal is nearest to −z of the table."""
+    normals_z = rotate(quaternion, np.eye(3))[..., 2]  # (frames, 3): the table-z of the body's +x, +y, +z axes
+    axis = np.abs(normals_z).argmax(1)
+    return 2 * axis + (normals_z[np.arange(len(axis)), axis] < 0)
