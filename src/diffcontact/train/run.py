@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
+import warnings
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -289,6 +291,28 @@ def _rank(devices: int) -> int:
     return int(os.environ.get("NODE_RANK", 0)) * devices + int(os.environ.get("LOCAL_RANK", 0))
 
 
+class _NoAdvertisement(logging.Filter):
+    """Drops Lightning's "💡 Tip" advertisement (litlogger, its cloud service) from its rank-zero log."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("💡 Tip")
+
+
+_QUIET = _NoAdvertisement()
+
+
+def _quiet_lightning() -> None:
+    """Lightning's advertisement and its use of a name that torch has deprecated (``LeafSpec``), neither of
+    which a user can act on, silenced where they come from; every other message and warning stays."""
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        logger = logging.getLogger(name)
+        if _QUIET not in logger.filters:
+            logger.addFilter(_QUIET)
+    warnings.filterwarnings(
+        "ignore", r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning, r"lightning\.pytorch\."
+    )
+
+
 def train_run(
     task: str,
     model: str | None = None,
@@ -344,6 +368,7 @@ def train_run(
     for key, value in (("devices", devices), ("num_nodes", num_nodes)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
+    _quiet_lightning()
     config = load_task(task)  # (a packaged task's name or a task file's path, recorded as found from anywhere)
     task = config.ref
     run = (
