@@ -61,9 +61,3 @@ def kinetic_energy(inertia: Inertia, v: torch.Tensor) -> torch.Tensor:
     """½ vᵀ M v: v (B, P, d) -> (B,)."""
     M, _ = body_blocks(inertia)
     return 0.5 * (v * apply_blocks(M, v)).flatten(1).sum(-1)
-
-
-def body_com(inertia: Inertia, x: torch.Tensor) -> torch.Tensor:
-    """Centre of mass of each body (its first point): x (B, P, d) -> (B, n_bodies, d)."""
-    q = inertia.moments.shape[-1] + 1
-    return x[:, ::q]

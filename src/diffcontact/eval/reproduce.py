@@ -89,12 +89,6 @@ def plan(out: Path, tasks: list[str], models: list[str], seeds: list[int]) -> li
     return cells
 
 
-def _call(cmd: list[str], log, env: dict) -> int:
-    log.write(f"$ {' '.join(cmd)}\n")
-    log.flush()
-    return subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
-
-
 def run_cell(cell: Cell, data: Path, quick: bool, threads: int = 1) -> dict:
     """Train (if not trained yet) and evaluate one cell in a subprocess with ``threads`` threads
     (``diffcontact.eval.worker``, output to ``run/reproduce.log``); writes and returns ``run/reproduce.json``
