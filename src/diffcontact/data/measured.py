@@ -84,6 +84,16 @@ def finite_difference_twist(tosses: Tosses) -> tuple[np.ndarray, np.ndarray]:
     return velocity, omega
 
 
+def first_state_settings() -> dict:
+    """The settings of ``first_states``, as a dataset records them."""
+    return {
+        "flight_frames": FLIGHT_FRAMES,
+        "min_flight_frames": MIN_FLIGHT_FRAMES,
+        "flight_clearance_m": FLIGHT_CLEARANCE,
+        "gravity_m_s2": GRAVITY,
+    }
+
+
 def lowest_corner(tosses: Tosses, table_height: float, half_extents) -> np.ndarray:
     """(F,) height in m of every frame's lowest corner above the table."""
     corners = rotate(tosses.quaternion, box_vertices(half_extents))[..., 2]
@@ -254,12 +264,7 @@ def import_tosses(
             "corner's z over each toss's last 5 frames",
             "velocity_method": "central differences of the recorded poses (one-sided, second order, at a toss's "
             "last frame); at a toss's first frame, the free-flight fit of first_states",
-            "first_state": {
-                "flight_frames": FLIGHT_FRAMES,
-                "min_flight_frames": MIN_FLIGHT_FRAMES,
-                "flight_clearance_m": FLIGHT_CLEARANCE,
-                "gravity_m_s2": GRAVITY,
-            },
+            "first_state": first_state_settings(),
             "contact_flag": f"lowest corner within {CONTACT_HEIGHT} m of the table",
             "half_extents_m": half,
             "tosses_file": {"file": TOSSES_FILE, "sha256": tosses_sha},

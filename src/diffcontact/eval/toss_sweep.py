@@ -24,14 +24,15 @@ METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 
 
 def _dataset(source, out: Path, n: int | None, seed: int, split, task: str) -> Path:
-    """The imported dataset of N training tosses (all with None), made once."""
-    from diffcontact.data.measured import import_tosses
+    """The imported dataset of N training tosses (all with None), made once (again where the importer's first
+    states have changed since)."""
+    from diffcontact.data.measured import first_state_settings, import_tosses
 
     folder = out / "data" / (f"N{n}" if n else "all") / task
     try:
         request = load_meta(folder)["request"]
-        made = (request["seed"], request["split"], request["train_tosses_requested"])
-        if made == (seed, list(split), n):
+        made = (request["seed"], request["split"], request["train_tosses_requested"], request.get("first_state"))
+        if made == (seed, list(split), n, first_state_settings()):
             return folder
     except (DiffContactError, KeyError):  # (missing, incomplete or of an older version: import it again)
         pass

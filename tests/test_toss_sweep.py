@@ -1,0 +1,33 @@
+"""The training-size sweep on measured tosses: its cells, its resumption and its tables (on the shipped sample)."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from diffcontact.cli import app
+from diffcontact.data.store import load_meta
+
+
+def test_the_sweep_runs_its_cells_resumes_and_tabulates(tmp_path):
+    out = tmp_path / "sweep"
+    args = ["bench", "tosses", "sample", "--out", str(out), "-n", "4", "-n", "8", "-m", "nominal"]
+    first = CliRunner().invoke(app, args)
+    assert first.exit_code == 0, first.output
+    record = json.loads((out / "sweep.json").read_text())
+    cells = record["table"]["nominal"]
+    assert set(cells) == {"4", "8"} and cells["4"] == cells["8"]  # (no training: the same test tosses, one score)
+    assert 0 < cells["4"]["position_error_pct"] < 100 and cells["4"]["tosses"] == 2
+    for n in (4, 8):  # (nested, seeded training subsets of one split; the validation and test tosses shared)
+        request = load_meta(out / "data" / f"N{n}" / "CubeToss")["request"]
+        assert request["train_tosses"] == n and request["first_state"]["flight_frames"] == 15
+    ids = [load_meta(out / "data" / f"N{n}" / "CubeToss")["request"]["toss_ids"] for n in (4, 8)]
+    assert set(ids[0]["train"]) < set(ids[1]["train"]) and ids[0]["test"] == ids[1]["test"]
+    table = (out / "sweep.md").read_text()
+    assert "| nominal |" in table and "N = 4" in table and (out / "sweep.png").stat().st_size > 0
+    stamp = (out / "runs" / "nominal" / "eval" / "metrics.json").stat().st_mtime_ns
+    again = CliRunner().invoke(app, args)  # (resumes: every cell is read, none run again)
+    assert again.exit_code == 0 and (out / "runs" / "nominal" / "eval" / "metrics.json").stat().st_mtime_ns == stamp
+    bad = CliRunner().invoke(app, [*args[:5], "-m", "drake"])
+    assert bad.exit_code == 2 and "unknown methods ['drake']" in bad.output
