@@ -19,9 +19,6 @@ from pathlib import Path
 
 import torch
 
-from diffcontact.data.generate import generate_dataset
-from diffcontact.train.run import train_run
-
 TASK_FILE = """\
 [task]
 name = "box-of-balls"
@@ -72,11 +69,11 @@ def main(out: Path, quick: bool) -> dict:
     print(f"simulated: energy {energy[0]:.3f} J -> {energy[-1]:.3f} J in {task.frames} frames, {impacts} impacts")
 
     sizes = dict(n_train=48, n_val=8, n_test=8) if quick else dict(n_train=400, n_val=50, n_test=50)
-    generate_dataset(path, out / "data", progress=False, **sizes)  # diffcontact generate ./box_of_balls.toml
+    dc.generate_dataset(path, out / "data", progress=False, **sizes)  # diffcontact generate ./box_of_balls.toml
     # diffcontact train ./box_of_balls.toml --data OUT/data --out OUT/run --epochs 15 --batch-size 8 --coef-lr 1
     # (μ and e at the full learning rate: the default preset's 1/6 is for 200 epochs)
     settings = dict(epochs=15, batch_size=8) if quick else dict(epochs=100, batch_size=16)
-    summary = train_run(str(path), data_root=out / "data", out=out / "run", coef_lr=1.0, progress=False, **settings)
+    summary = dc.train_run(str(path), data_root=out / "data", out=out / "run", coef_lr=1.0, progress=False, **settings)
     for key in ("mu", "e"):
         print(f"{key}: learned {summary[key]['learned'][0]:.4f}, true {summary[key]['true'][0]:.4f}")
     return summary

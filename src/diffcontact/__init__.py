@@ -19,10 +19,38 @@ from diffcontact.systems.registry import BENCHMARK_TASKS, build_task
 
 __version__ = "0.1.0"
 
+# The workflow's entry points, imported when first used (they load Lightning, plotting and the data layer, which
+# the solver and the simulator do not need): ``dc.generate_dataset(...)``, ``dc.train_run(...)`` and so on.
+_LAZY = {
+    "ContactSolver": "diffcontact.solver.contact_solver",
+    "build_model": "diffcontact.models.model",
+    "generate_dataset": "diffcontact.data.generate",
+    "train_run": "diffcontact.train.run",
+    "evaluate_run": "diffcontact.eval.evaluate",
+    "evaluate_nominal": "diffcontact.eval.evaluate",
+    "import_tosses": "diffcontact.data.measured",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'diffcontact' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
+
+
 __all__ = [
     "BENCHMARK_TASKS",
     "ConfigError",
     "ContactModel",
+    "ContactSolver",
     "ContactSolverError",
     "IndefiniteMatrixError",
     "DatasetError",
@@ -33,9 +61,15 @@ __all__ = [
     "State",
     "Status",
     "available_tasks",
+    "build_model",
     "build_task",
+    "evaluate_nominal",
+    "evaluate_run",
+    "generate_dataset",
+    "import_tosses",
     "load_task",
     "simulator_for",
     "solve_cone_qp",
+    "train_run",
     "__version__",
 ]
