@@ -114,6 +114,9 @@ def test_a_small_dataset_trains_for_the_task_files_fewest_optimiser_steps(data_r
                         schedule="constant", progress=False)  # fmt: skip
     # (one batch an epoch: the 16 training trajectories' chunks in one batch of 1000)
     assert summary["optimiser_steps"] == 9 and summary["epochs_trained"] == 9
+    metrics = next((tmp_path / "run" / "logs" / "csv").rglob("metrics.csv")).open()
+    validated = [int(r["epoch"]) for r in csv.DictReader(metrics) if r.get("val/loss")]
+    assert validated == [8], validated  # (every 9th epoch: one validation, as 1 epoch asked for would have)
     assert json.loads((tmp_path / "run" / "config.json").read_text())["args"]["min_steps"] == 9
 
 

@@ -522,8 +522,12 @@ def train_run(
         for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
             tmp.unlink(missing_ok=True)
         start = last if resume and last.is_file() else None
+        max_epochs = planned_epochs(args["epochs"], args["min_steps"], data.batches_per_epoch(processes))
         trainer = pl.Trainer(
-            max_epochs=planned_epochs(args["epochs"], args["min_steps"], data.batches_per_epoch(processes)),
+            max_epochs=max_epochs,
+            # (epochs raised for a small dataset validate as often as the epochs asked for would: the validation
+            # split is not smaller, and validating it every epoch of 8 tosses cost 5 times the training)
+            check_val_every_n_epoch=max(1, max_epochs // args["epochs"]),
             plugins=[_AtomicCheckpointIO()],
             logger=loggers,
             callbacks=[checkpoints, _ShuffleState()],
