@@ -186,7 +186,7 @@ def finished(data_root, tmp_path_factory):
         (dict(seed=1), r"seed = 1 differs from the run's 0"),
         (dict(schedule="cosine"), r"schedule = 'cosine' differs from the run's 'constant'"),
         (dict(preset="published"), r"preset = 'published' differs from the run's 'default'"),
-        (dict(epochs=1), r"epochs = 1 is fewer than the 2 epochs the run has trained"),
+        (dict(epochs=1), r"epochs = 1 \(planned: 1\) is fewer than the 2 epochs the run has trained"),
         (dict(data_root="elsewhere"), r"data_root = 'elsewhere' differs from the run's '/"),
     ],
 )

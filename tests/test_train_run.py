@@ -117,6 +117,9 @@ def test_a_small_dataset_trains_for_the_task_files_fewest_optimiser_steps(data_r
     metrics = next((tmp_path / "run" / "logs" / "csv").rglob("metrics.csv")).open()
     validated = [int(r["epoch"]) for r in csv.DictReader(metrics) if r.get("val/loss")]
     assert validated == [8], validated  # (every 9th epoch: one validation, as 1 epoch asked for would have)
+    # resumed with the epochs it was asked for, the run is finished: its planned epochs, not 1, are the bound
+    again = train_run(str(task), out=tmp_path / "run", data_root=data_root, resume=True, progress=False)
+    assert again["epochs_trained"] == 9
     assert json.loads((tmp_path / "run" / "config.json").read_text())["args"]["min_steps"] == 9
 
 

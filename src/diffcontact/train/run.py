@@ -209,10 +209,11 @@ RUN_SETTINGS = (
 ACCELERATORS = ("cpu", "gpu", "auto")
 
 
-def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
-    """The recorded settings (config.json "args") of the run in ``run``, with ``epochs`` where given: raises
-    ConfigError if the run has no checkpoint or config, if a ``given`` setting (not None) differs from the
-    recorded one, or if ``epochs`` is fewer than the epochs already trained."""
+def _resume_settings(run: Path, given: dict, epochs: int | None) -> tuple[dict, int]:
+    """The recorded settings (config.json "args") of the run in ``run``, with ``epochs`` where given, and the
+    epochs it has trained: raises ConfigError if the run has no checkpoint or config, or if a ``given`` setting
+    (not None) differs from the recorded one.  (Whether the epochs planned are fewer than those trained is known
+    only with the data: ``min_steps``.)"""
     last = run / "checkpoints" / "last.ckpt"
     if not last.is_file() and not (run / "config.json").is_file():
         raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
@@ -250,14 +251,12 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> dict:
                 "leave it out to continue the run as it was, or train into another --out"
             )
     epochs = recorded["epochs"] if epochs is None else epochs
-    if epochs < done:
-        raise ConfigError(f"--resume: epochs = {epochs} is fewer than the {done} epochs the run has trained")
     if epochs != recorded["epochs"] and recorded["schedule"] != "constant":
         raise ConfigError(
             f"--resume: epochs = {epochs} differs from the run's {recorded['epochs']}, over which its "
             f"{recorded['schedule']} learning rate schedule is planned (only a constant one can be extended)"
         )
-    return {**recorded, "epochs": epochs}
+    return {**recorded, "epochs": epochs}, done
 
 
 def _check_numbers(settings: dict, **more) -> None:
@@ -380,6 +379,7 @@ def train_run(
     with output_lock(run) if first else nullcontext():  # (one command at a time writes a run)
         ckpt_dir = run / "checkpoints"
         last = ckpt_dir / "last.ckpt"
+        done = 0  # (epochs trained before: a resumed run's)
         if resume:
             given = dict(
                 task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
@@ -389,7 +389,7 @@ def train_run(
                 num_nodes=num_nodes, potential=None, velocity_weight=None, moments_init=None,
                 axis_scale=None, min_steps=None,
             )  # fmt: skip
-            args = _resume_settings(run, given, epochs)
+            args, done = _resume_settings(run, given, epochs)
         else:
             if ckpt_dir.is_dir() and any(ckpt_dir.glob("*.ckpt")):
                 raise ConfigError(
@@ -456,6 +456,20 @@ def train_run(
             lr=args["lr"],
             lr_scaling="none (the learning rate is not scaled with the effective batch)",
         )
+        data = ContactDataModule(
+            args["task"],
+            root=args["data_root"],
+            batch_size=args["batch_size"],
+            mode="pairs" if args["model"] in BASELINE_NAMES else "chunks",  # (the baselines train on one-step pairs)
+            dtype=getattr(torch, args["dtype"]),
+            seed=args["seed"],
+        )
+        max_epochs = planned_epochs(args["epochs"], args["min_steps"], data.batches_per_epoch(processes))
+        if resume and max_epochs < done:
+            raise ConfigError(
+                f"--resume: epochs = {args['epochs']} (planned: {max_epochs}) is fewer than the {done} epochs the run "
+                "has trained"
+            )
         if first:
             run.mkdir(parents=True, exist_ok=True)
             write_json(
@@ -471,15 +485,6 @@ def train_run(
 
         started = time.perf_counter()
         pl.seed_everything(seed, workers=True)
-        mode = "pairs" if model in BASELINE_NAMES else "chunks"  # (the baselines train on one-step pairs)
-        data = ContactDataModule(
-            task,
-            root=args["data_root"],
-            batch_size=args["batch_size"],
-            mode=mode,
-            dtype=getattr(torch, dtype),
-            seed=seed,
-        )
         module = ContactLightningModule(
             task,
             model,
@@ -522,7 +527,6 @@ def train_run(
         for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
             tmp.unlink(missing_ok=True)
         start = last if resume and last.is_file() else None
-        max_epochs = planned_epochs(args["epochs"], args["min_steps"], data.batches_per_epoch(processes))
         trainer = pl.Trainer(
             max_epochs=max_epochs,
             # (epochs raised for a small dataset validate as often as the epochs asked for would: the validation
