@@ -67,6 +67,7 @@ def test_simulate_outputs_that_cannot_be_written(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
 
 
+@pytest.mark.slow
 def test_a_full_disk_is_one_line_and_leaves_no_file(tmp_path, monkeypatch):
     def full(fh, *args, **kw):
         fh.write(b"partial")

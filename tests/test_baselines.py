@@ -178,6 +178,7 @@ def _pairs(task, n: int, frames: int, seed: int, keep: int):
     return [t.flatten(0, 1)[order].float() for t in (xs[cut], vs[cut], xs[nxt], vs[nxt])]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", SMALL)
 def test_each_baseline_trains_on_a_small_system_of_each_kind(name):
     """20 AdamW steps on 32 one-step pairs (all those of 4 trajectories with a contact, 2 to 32 of them) reduce
@@ -209,6 +210,7 @@ def data_root(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_a_baseline_run_directory_holds_the_same_files_and_its_learned_json(data_root, tmp_path):
     for model in BASELINE_NAMES:
         run = tmp_path / model
@@ -225,6 +227,7 @@ def test_a_baseline_run_directory_holds_the_same_files_and_its_learned_json(data
         build_model(dc.build_task("BP1"), "IN-CP-SP", reg=0.1)
 
 
+@pytest.mark.slow
 def test_mlp_cd_clnn_fits_the_velocity_jump_of_the_collision_pairs():
     """The collision MLP is applied where detection fires and trained through it: on the ~100 collision pairs of 32
     BP2 trajectories, 150 full-batch AdamW steps bring the one-step L1 error below half constant velocity's.

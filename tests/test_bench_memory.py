@@ -32,6 +32,7 @@ def test_an_unknown_task_fails_before_any_training(tmp_path):
         run_memory_benchmark(["NoSuchTask"], data=str(tmp_path), echo=lambda line: None)
 
 
+@pytest.mark.slow
 def test_the_report_of_a_tiny_run(tmp_path):
     """BP5-e, 2 epochs on a dataset of 8 training trajectories: one row with 2 RSS readings, JSON and table."""
     lines = []

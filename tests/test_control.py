@@ -53,6 +53,7 @@ def test_billiards_loss_gradient_wrt_cue_velocity_matches_finite_differences():
         assert abs(float(grad[i]) - expect) <= 1e-6 * max(1.0, abs(expect)), (i, float(grad[i]), expect)
 
 
+@pytest.mark.slow
 def test_throw_landing_gradient_through_the_impact_time_matches_finite_differences():
     throw = Throw(Physics.true(), "hit")
     theta0 = torch.tensor([0.5, 0.3, -2.0], dtype=F64)
@@ -64,6 +65,7 @@ def test_throw_landing_gradient_through_the_impact_time_matches_finite_differenc
     assert J[0, 1].abs().max() < 1e-9  # the landing height is the radius, whatever the throw
 
 
+@pytest.mark.slow
 def test_batched_throws_equal_single_throws():
     """Candidates in one batch bounce at different frames; each row equals its own simulation."""
     throw = Throw(Physics.true(), "hit")
@@ -104,6 +106,7 @@ def test_billiards_search_lines_are_seeded_and_its_speeds_give_the_predicted_dis
     assert float(found.distances[0]) < 0.1 * float(r0.norm())  # (the search beats the task file's shot)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["hit", "vertical"])
 def test_throws_loss_falls_by_90_percent(mode):
     throw = Throw(Physics.true(), mode)
@@ -163,6 +166,7 @@ def test_infeasible_controls_have_infinite_residuals_and_are_errors_at_the_start
         throw.landings(throw.theta0)
 
 
+@pytest.mark.slow
 def test_control_throw_command_writes_its_outputs(tmp_path):
     from typer.testing import CliRunner
 

@@ -26,6 +26,7 @@ def example(tmp_path_factory):
     return out, module.main(out, quick=True)
 
 
+@pytest.mark.slow
 def test_the_example_learns_e_of_its_own_system(example):
     out, summary = example
     assert summary["e"]["true"][0] == pytest.approx(0.7) and summary["mu"]["true"][0] == pytest.approx(0.2)
@@ -36,6 +37,7 @@ def test_the_example_learns_e_of_its_own_system(example):
     assert (out / "data" / "box-of-balls" / "meta.json").is_file()
 
 
+@pytest.mark.slow
 def test_the_commands_take_the_task_file_by_its_path(example, monkeypatch):
     out, _ = example
     monkeypatch.chdir(out)

@@ -67,6 +67,7 @@ def test_no_usable_window_and_bad_arguments_are_errors():
         select_chunks(torch.zeros(2, 10), 5, torch.Generator())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["BP5-e", "BP5", "CP3-e", "CP3", "BD5", "Gyro-e", "Gyro"])
 def test_benchmark_task_chunks_collide_about_half_the_time(name):
     task = build_task(name)

@@ -156,6 +156,7 @@ save_arrays(sys.argv[1], {"x": np.ones((64, 1024, 1024))})  # 512 MB
 """
 
 
+@pytest.mark.slow
 def test_killed_writer_leaves_no_file_that_loads(tmp_path):
     folder = tmp_path / TASK
     folder.mkdir()

@@ -124,6 +124,7 @@ def test_hamiltonian_rollout_with_contacts_matches_lagrangian():
     torch.testing.assert_close(vh, vl, atol=1e-7, rtol=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, horizon", [("CP3-e", 0.2), ("Gyro-e", 0.2), ("Rope", 0.05)])
 def test_rk4_empirical_order_is_four(name, horizon):
     """Between impacts (no contact on the interval) the global error of the 3/8-rule RK4 step scales as dt⁴."""

@@ -46,6 +46,7 @@ def resumed(tmp_path_factory):
     return out, report, killed, stamps, lines
 
 
+@pytest.mark.slow
 def test_a_killed_reproduction_resumes_without_redoing_finished_runs(resumed):
     out, report, killed, stamps, lines = resumed
     assert not killed["report"] and not killed["second"]  # (killed after the first run, before the second ended)
@@ -134,6 +135,7 @@ def test_expected_times_come_from_the_same_models_earlier_runs(tmp_path):
     assert "B/new/seed0" not in got  # (nothing to go by: the session's mean is used)
 
 
+@pytest.mark.slow
 def test_the_report_is_published_between_the_markers_of_the_results_page(resumed, tmp_path):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from publish_report import END, START, publish

@@ -34,6 +34,7 @@ def _loss(model, X, V):
     return 0.5 * ((px - X).abs().mean() + (pv - V).abs().mean())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,mu_start,e_start,e_checked", KINDS)
 def test_a_short_run_reduces_the_loss_and_moves_mu_and_e_toward_the_truth(name, mu_start, e_start, e_checked):
     """40 AdamW steps on 16 chunks from μ and e away from the truth (a random start can lie next to it)."""

@@ -181,6 +181,7 @@ def test_a_folder_of_pt_files_reads_as_the_npz(tmp_path, sample_arrays):
         assert np.array_equal(getattr(a, key), getattr(b, key))
 
 
+@pytest.mark.slow
 def test_the_import_and_nominal_evaluation_commands(tmp_path):
     from typer.testing import CliRunner
 

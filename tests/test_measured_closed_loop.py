@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from diffcontact import build_task
 from diffcontact.data.measured import import_tosses
 from diffcontact.data.tosses import save_contactnets_npz, simulated_tosses
@@ -13,6 +15,7 @@ from diffcontact.train.run import train_run
 RECOVERED = 0.02  # |learned − true| of μ and e
 
 
+@pytest.mark.slow
 def test_cube_tosses_recorded_imported_and_learned(tmp_path):
     task = build_task("Cube")
     tosses = simulated_tosses(task, 16, seed=5, frames=60)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import gc
 import weakref
 
+import pytest
 import torch
 
 from diffcontact.bench.train import StepTimer, synthetic_batch
@@ -41,6 +42,7 @@ def test_the_flat_projection_frees_its_outputs():
     assert not any(alive), f"outputs of FlatProjection outlived their graph: {alive}"
 
 
+@pytest.mark.slow
 def test_gyroscope_training_steps_keep_the_live_tensor_count_flat():
     """Steps of CM-CD-CLNN on gyroscope chunks (whose singular effective mass goes through the flat projection):
     after a warm-up the number of live tensors does not grow (the leaking code added about 48 a step)."""

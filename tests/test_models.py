@@ -74,6 +74,7 @@ def test_loss_gradients_reach_mu_e_and_masses(name):
         assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
 
 
+@pytest.mark.slow
 def test_tiny_run_recovers_restitution_and_friction_of_one_ball():
     """BP1: one ball under gravity in a box, μ = 0.2, e = 0.8; 64 colliding chunks, 300 AdamW steps."""
     task = dc.build_task("BP1")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 import diffcontact as dc
 
 PUBLIC = {
@@ -22,6 +24,7 @@ def test_the_public_names_are_pinned_and_resolve():
     assert set(dir(dc)) == PUBLIC
 
 
+@pytest.mark.slow
 def test_importing_the_package_does_not_load_the_training_stack():
     code = "import sys, diffcontact; print(sorted(m for m in ('lightning', 'matplotlib') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

@@ -44,6 +44,7 @@ def holder(tmp_path):
         proc.stdout.close()
 
 
+@pytest.mark.slow
 def test_a_locked_output_is_a_clear_error_naming_the_holder_and_a_dead_holders_lock_is_taken_over(holder):
     folder, proc = holder
     lock = folder / LOCK_NAME
@@ -81,6 +82,7 @@ def test_generate_and_train_into_a_locked_output_fail_in_one_line_and_write_noth
     assert sorted(p.name for p in folder.iterdir()) == [LOCK_NAME]  # (no config.json, no checkpoints)
 
 
+@pytest.mark.slow
 def test_two_generate_commands_at_once_leave_one_valid_dataset(tmp_path):
     """Two processes generating the same task into one root with other sizes: whatever the interleaving, one
     writes the dataset and the other stops with a one-line LockError or ConfigError; the dataset loads."""
@@ -118,6 +120,7 @@ def test_two_generate_commands_at_once_leave_one_valid_dataset(tmp_path):
     assert not (tmp_path / "BP1" / LOCK_NAME).exists()
 
 
+@pytest.mark.slow
 def test_parallel_generation_is_byte_identical_to_serial(tmp_path, monkeypatch):
     """Blocks of 2 trajectories (the splits of 5 and 3: 3 and 2 blocks), one after the other or in 2 processes."""
     import diffcontact.data.generate as gen

@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from diffcontact.data.generate import generate_dataset
@@ -25,6 +26,7 @@ def _parameters(run) -> dict:
     return torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
 
 
+@pytest.mark.slow
 def test_two_nodes_of_one_process_train_as_two_processes_on_one_machine(tmp_path):
     data = tmp_path / "data"
     generate_dataset("BP1", data, n_train=16, n_val=4, n_test=4, progress=False, echo=None)

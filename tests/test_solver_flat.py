@@ -109,6 +109,7 @@ def test_gyroscope_problem_of_the_issue(dtype):
         (6, 1, 1.0, 8),
     ],
 )
+@pytest.mark.slow
 def test_gradcheck_through_a_singular_effective_mass(K, d, mu_scale, seed):
     """A = F Fᵀ + rounding and q = F w, as A = J M⁻¹ Jᵀ and q = J v are formed: the finite differences move the
     null space of A and q with it (perturbing A alone would leave q with a component the joints do not allow)."""
@@ -216,6 +217,7 @@ def test_an_elements_solution_and_gradient_do_not_depend_on_its_batch(K, d):
             assert torch.allclose(one[0], full[b], rtol=1e-7, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_stress_benchmark_element_whose_gradient_was_not_finite_in_its_batch():
     """Element 305 of the stress benchmark's (K = 19, d = 1, float32) batch (seed 0): six flat directions; its
     gradient with respect to the lower bounds was NaN / 1e31 in the batch of 1000 (the line steps ran as long as any

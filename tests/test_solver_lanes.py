@@ -93,6 +93,7 @@ def test_bad_environment_variable_is_named(monkeypatch, restore_width):
         lanes.select_width()
 
 
+@pytest.mark.slow
 def test_bad_environment_variable_does_not_break_the_import():
     """The width is chosen on first use: the import succeeds and the first solve names the variable."""
     code = (

@@ -138,6 +138,7 @@ def test_float32_tasks_run_in_float32():
         assert x.dtype == torch.float32 and torch.isfinite(x).all() and torch.isfinite(v).all()
 
 
+@pytest.mark.slow
 def test_billiards_first_iteration_loss_matches_the_published_value():
     """Spec H.7: the downstream billiards loss |x_10(T) − goal|² at the initial cue state was 0.04548 in the
     paper's code and 0.04542 in DiffTaichi (spec H.7); ours, with the paper's end-of-step contact scheme, must land

@@ -87,6 +87,7 @@ def test_quiet_waiting_keeps_the_users_setting():
     assert child["OMP_WAIT_POLICY"] == "PASSIVE" and child["PATH"] == "/bin"
 
 
+@pytest.mark.slow
 def test_passive_waiting_is_set_before_torch_is_imported():
     """The OpenMP runtime reads OMP_WAIT_POLICY when torch loads it: `import diffcontact` must set it first."""
     probe = (
@@ -120,6 +121,7 @@ def test_spin_warning_names_the_cause_and_the_fix():
     assert spin_warning({}, {"torch": FakeTorch(1)}) is None  # one thread: no worker to spin
 
 
+@pytest.mark.slow
 def test_importing_torch_first_warns_once_and_diffcontact_first_does_not():
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "KMP_BLOCKTIME", "OMP_NUM_THREADS")}
     env["OMP_NUM_THREADS"] = "2"
@@ -181,6 +183,7 @@ def test_bench_train_flags_a_step_without_contacts_slower_than_with_them():
     assert row["disturbed"] and row["contact"] == 0.0
 
 
+@pytest.mark.slow
 def test_busy_processes_die_with_the_benchmark_even_if_it_is_killed():
     code = (
         "import signal, time\n"

@@ -246,6 +246,7 @@ def test_one_toi_step_of_the_disk_rim_passes_gradcheck():
     assert torch.autograd.gradcheck(one_step, (x0, v0), eps=1e-7, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_one_toi_step_of_a_rope_limit_passes_gradcheck():
     """Rope: the first step in which a limit becomes active (frame 10 -> 11 of seed 0, no contact before);
     with TOI the limit is met at its time of impact, and gradcheck in (x, v)."""

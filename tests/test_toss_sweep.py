@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from typer.testing import CliRunner
 
 from diffcontact.cli import app
 from diffcontact.data.store import load_meta
 
 
+@pytest.mark.slow
 def test_the_sweep_runs_its_cells_resumes_and_tabulates(tmp_path):
     out = tmp_path / "sweep"
     args = ["bench", "tosses", "sample", "--out", str(out), "-n", "4", "-n", "8", "-m", "nominal"]

@@ -39,6 +39,7 @@ def data_root(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_two_processes_learn_what_one_learns_and_sum_their_counters(data_root, tmp_path):
     one = train_run("BP1", out=tmp_path / "one", data_root=data_root, batch_size=8, progress=False, **SETTINGS)
     script = tmp_path / "ddp_run.py"

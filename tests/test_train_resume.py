@@ -87,6 +87,7 @@ def test_a_resumed_run_ends_bit_identical_to_an_uninterrupted_one(data_root, who
     assert config == json.loads((whole / "config.json").read_text())["args"]
 
 
+@pytest.mark.slow
 def test_a_run_killed_by_sigkill_resumes_to_the_same_end(data_root, whole, tmp_path):
     """The run in another process, SIGKILLed as soon as its first checkpoint is there (in epoch 1, or while a
     checkpoint is written: Lightning writes it to a temporary file first), then resumed here."""
@@ -140,6 +141,7 @@ train_run("BP1", out=sys.argv[1], data_root=sys.argv[2], progress=False, **{sett
 """
 
 
+@pytest.mark.slow
 def test_a_checkpoint_half_written_at_a_sigkill_is_never_loaded(data_root, whole, tmp_path):
     """SIGKILL while last.ckpt of epoch 2 is written: the half-written file is a temporary one beside last.ckpt (of
     epoch 1, whole); the resumed run deletes it and ends bit-identical to the uninterrupted run."""
