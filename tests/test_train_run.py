@@ -10,6 +10,7 @@ import torch
 
 import diffcontact as dc
 from diffcontact.data.generate import generate_dataset
+from diffcontact.data.store import load_split
 from diffcontact.errors import ConfigError
 from diffcontact.train.module import ContactLightningModule
 from diffcontact.train.run import planned_epochs, resolve_preset, task_training, train_run
@@ -121,6 +122,23 @@ def test_a_small_dataset_trains_for_the_task_files_fewest_optimiser_steps(data_r
     again = train_run(str(task), out=tmp_path / "run", data_root=data_root, resume=True, progress=False)
     assert again["epochs_trained"] == 9
     assert json.loads((tmp_path / "run" / "config.json").read_text())["args"]["min_steps"] == 9
+
+
+def test_mu_and_e_can_start_from_a_scan_of_the_training_loss(data_root, tmp_path):
+    with pytest.raises(ConfigError, match=r"coef_start = 'best' is not one of \['random', 'scan'\]"):
+        train_run(str(_task_file(tmp_path, 'coef_start = "best"\n')), epochs=1, out=tmp_path / "bad",
+                  data_root=data_root, progress=False)  # fmt: skip
+    task = _task_file(tmp_path, 'coef_start = "scan"\npotential = "known"\n')  # (a random potential would blur it)
+    summary = train_run(str(task), epochs=1, out=tmp_path / "run", data_root=data_root, batch_size=8, progress=False)
+    record = json.loads((tmp_path / "run" / "coef_start.json").read_text())
+    assert len(record["grid"]) == 16 and record["windows"] == min(
+        64, len(load_split(data_root / "BP1", "train").chunk_x)
+    )
+    least = min(record["grid"], key=lambda c: c["loss"])
+    assert record["chosen"] == {"mu": least["mu"], "e": least["e"]} == summary["coef_start"]
+    # BP1's ball bounces at e = 0.8 with μ = 0.2: the least loss is at the e next to it, and at a μ above 0.2 as
+    # well as at it (μ = 0.3 and 0.6 differ by 2 %: a ball that sticks on these bounces is as good as one at 0.2)
+    assert least["e"] == 0.85 and least["mu"] >= 0.15, record["grid"]
 
 
 def test_mu_learns_at_its_own_rate_where_given():

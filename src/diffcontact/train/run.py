@@ -18,6 +18,7 @@ from diffcontact.data.store import TMP_PREFIX, atomic_write, load_meta, save_fig
 from diffcontact.errors import ConfigError
 from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+from diffcontact.train.coef_start import COEF_STARTS, scan_coefficients
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule
 from diffcontact.train.summary import learned_summary
@@ -80,6 +81,7 @@ PRESETS = {
         moments_init=1.0,
         axis_scale=1.0,
         min_steps=0,
+        coef_start="random",
     ),
     "published": dict(
         epochs=1000,
@@ -95,6 +97,7 @@ PRESETS = {
         velocity_weight=1.0,
         moments_init=1.0,
         min_steps=0,
+        coef_start="random",
     ),
 }
 
@@ -126,7 +129,8 @@ def task_training(task: str | Path) -> dict:
     # (moments_init: the scale in m² per unit mass at which the learned second moments start, about the body's size²;
     # axis_scale: the weight in the loss of an extended body's axis points against its centre, in m: the body's size
     # makes an axis point's error the displacement of its surface by a wrong rotation; min_steps: the fewest optimiser
-    # steps a run takes, its epochs raised to reach them on a small dataset: ``planned_epochs``)
+    # steps a run takes, its epochs raised to reach them on a small dataset: ``planned_epochs``; coef_start: where μ
+    # and e start, "random" or "scan": ``train/coef_start.py``)
     return settings
 
 
@@ -204,7 +208,7 @@ class _ShuffleState(pl.Callback):
 RUN_SETTINGS = (
     "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "mu_l1", "reg",
     "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
-    "potential", "velocity_weight", "moments_init", "axis_scale", "min_steps",
+    "potential", "velocity_weight", "moments_init", "axis_scale", "min_steps", "coef_start",
 )  # fmt: skip
 ACCELERATORS = ("cpu", "gpu", "auto")
 
@@ -235,6 +239,7 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> tuple[dict, 
     recorded.setdefault("moments_init", 1.0)
     recorded.setdefault("axis_scale", 1.0)
     recorded.setdefault("min_steps", 0)  # (and for the epochs asked for)
+    recorded.setdefault("coef_start", "random")  # (and from a random μ and e)
     missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
     if missing:
         raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
@@ -387,7 +392,7 @@ def train_run(
                 mu_transform=mu_transform,
                 e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
                 num_nodes=num_nodes, potential=None, velocity_weight=None, moments_init=None,
-                axis_scale=None, min_steps=None,
+                axis_scale=None, min_steps=None, coef_start=None,
             )  # fmt: skip
             args, done = _resume_settings(run, given, epochs)
         else:
@@ -417,6 +422,8 @@ def train_run(
             )
             if settings["epochs"] < 1:
                 raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
+            if settings["coef_start"] not in COEF_STARTS:
+                raise ConfigError(f"coef_start = {settings['coef_start']!r} is not one of {list(COEF_STARTS)}")
             _check_numbers(settings, weight_decay=weight_decay, reg=reg)
             args = dict(
                 task=task,
@@ -435,6 +442,7 @@ def train_run(
                 moments_init=settings["moments_init"],
                 axis_scale=settings["axis_scale"],
                 min_steps=settings["min_steps"],
+                coef_start=settings["coef_start"],
                 reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
                 weight_decay=1e-4 if weight_decay is None else weight_decay,
                 train_loss=train_loss or "l1",
@@ -545,6 +553,14 @@ def train_run(
             num_nodes=args["num_nodes"],
             strategy=pl.strategies.DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
         )
+        scan = run / "coef_start.json"
+        if start is None and args["coef_start"] == "scan" and model in MODEL_NAMES:
+            data.setup()
+            train = data.splits["train"]
+            record = scan_coefficients(module, train.chunk_x, train.chunk_v, seed)
+            pl.utilities.rank_zero_info(f"μ and e start at {record['chosen']} (the least loss of a scan)")
+            if first:
+                write_json(scan, record)
         trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
         totals = module.totals()  # (summed over the processes: every process calls it)
         best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
@@ -557,6 +573,8 @@ def train_run(
         request = load_meta(data.folder)["request"]
         if request.get("measured"):  # (the table's height is the importer's estimate, not learned)
             summary["table_height_m"] = {"value": request["table_height_m"], "how": request["table_height_method"]}
+        if scan.is_file():  # (where μ and e started)
+            summary["coef_start"] = json.loads(scan.read_text())["chosen"]
         summary["best_checkpoint"] = best
         summary["epochs_trained"] = int(trainer.current_epoch)
         summary["optimiser_steps"] = int(trainer.global_step)
