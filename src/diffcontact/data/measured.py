@@ -16,6 +16,7 @@ From recorded poses (``data/tosses.py``) to the 4-point states of the box task (
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -128,15 +129,24 @@ def first_states(tosses: Tosses, table_height: float, half_extents) -> tuple[np.
     return position, velocity, omega
 
 
+def with_first_states(tosses: Tosses, table_height: float, half_extents) -> Tosses:
+    """``tosses`` with each toss's first position, velocity and angular velocity replaced by ``first_states``: the
+    state a rollout of it starts from, for our models and the peers alike."""
+    first = tosses.offsets[:-1]
+    arrays = {k: getattr(tosses, k).copy() for k in ("position", "velocity", "omega")}
+    arrays["position"][first], arrays["velocity"][first], arrays["omega"][first] = first_states(
+        tosses, table_height, half_extents
+    )
+    return dataclasses.replace(tosses, **arrays)
+
+
 def tosses_to_points(tosses: Tosses, table_height: float, half_extents) -> tuple[np.ndarray, np.ndarray]:
     """The 4-point states x, v (F, 4, 3) of every recorded frame, with the table moved to z = 0 and the velocities
     from the poses: each toss's first frame from ``first_states``, the others from ``finite_difference_twist``."""
     velocity, omega = finite_difference_twist(tosses)
-    position = tosses.position.copy()
-    first = tosses.offsets[:-1]
-    position[first], velocity[first], omega[first] = first_states(tosses, table_height, half_extents)
-    position = position - np.array([0.0, 0.0, table_height])
-    arrays = (position, tosses.quaternion, velocity, omega)
+    tosses = with_first_states(dataclasses.replace(tosses, velocity=velocity, omega=omega), table_height, half_extents)
+    position = tosses.position - np.array([0.0, 0.0, table_height])
+    arrays = (position, tosses.quaternion, tosses.velocity, tosses.omega)
     x, v = pose_to_points(*(torch.from_numpy(a) for a in arrays))
     return x.numpy(), v.numpy()
 

@@ -12,13 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diffcontact.data.measured import GRAVITY  # noqa: F401 (m/s²: the first states' fit and the cubes use one g)
 from diffcontact.data.tosses import CONTACTNETS_LENGTH_SCALE, Tosses
 from diffcontact.errors import ConfigError
 
 HALF_EXTENT = CONTACTNETS_LENGTH_SCALE  # m
 MASS = 0.37  # kg
 INERTIA = 0.00081  # kg m², each principal moment
-GRAVITY = 9.81  # m/s²
 NOMINAL_FRICTION = 0.18  # the ContactNets experiment's μ
 NOMINAL_RESTITUTION = 0.125  # the ContactNets experiment's e
 SUBSTEPS = 10  # engine steps per recorded frame (dt / 10, as Acosta et al. for Bullet; the same for MuJoCo)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diffcontact.data.measured import with_first_states
 from diffcontact.data.store import save_arrays, versions, write_json
 from diffcontact.data.tosses import Tosses, read_tosses, resting_table_height, split_tosses, training_subset
 from diffcontact.errors import ConfigError
@@ -154,7 +155,7 @@ def run_fit(
     table_height, table_iqr = resting_table_height(tosses.subset(parts["train"]), [HALF_EXTENT] * 3)
     train_starts = test_starts = None
     if twist == "fitted":
-        train_starts, test_starts = (_with_first_states(t, table_height) for t in (train, test))
+        train_starts, test_starts = (with_first_states(t, table_height, [HALF_EXTENT] * 3) for t in (train, test))
     echo(f"{engine_name}: {train.n} training tosses ({len(train.position)} frames), {test.n} test tosses, "
          f"table at z = {table_height * 1000:.3f} mm, budget {budget}, load {os.getloadavg()[0]:.2f}")  # fmt: skip
     load_before = os.getloadavg()
@@ -203,16 +204,3 @@ def run_fit(
         {"position": position, "quaternion": quaternion, "offsets": test.offsets, "toss_id": test.toss_id},
     )
     return metrics
-
-
-def _with_first_states(tosses: Tosses, table_height: float) -> Tosses:
-    """``tosses`` with each toss's first position, velocity and angular velocity replaced by the state our models
-    start from (``data.measured.first_states``)."""
-    from diffcontact.data.measured import first_states
-
-    first = tosses.offsets[:-1]
-    arrays = {k: getattr(tosses, k).copy() for k in ("position", "velocity", "omega")}
-    arrays["position"][first], arrays["velocity"][first], arrays["omega"][first] = first_states(
-        tosses, table_height, [HALF_EXTENT] * 3
-    )
-    return dataclasses.replace(tosses, **arrays)

@@ -9,6 +9,8 @@ e = 0.68 with four times the loss of one started at 0.45.  The scan evaluates th
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from diffcontact.errors import ConfigError
@@ -43,7 +45,7 @@ def scan_coefficients(module, chunk_x: torch.Tensor, chunk_v: torch.Tensor, seed
                 losses.append({"mu": mu, "e": e, "loss": float(module.loss(batch, "l1"))})
     finally:
         module.train(was_training)
-    finite = [c for c in losses if c["loss"] == c["loss"] and c["loss"] != float("inf")]
+    finite = [c for c in losses if math.isfinite(c["loss"])]
     if not finite:
         params.mu_raw.copy_(mu0)
         params.e_raw.copy_(e0)
