@@ -14,9 +14,9 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from diffcontact import files as files_mod
 from diffcontact.cli import app
 from diffcontact.data import generate_dataset, load_split
-from diffcontact.data import store as store_mod
 from diffcontact.errors import ConfigError, DatasetError
 from diffcontact.solver import Status, solve_cone_qp
 from diffcontact.systems import build_task
@@ -61,8 +61,8 @@ def test_simulate_outputs_that_cannot_be_written(tmp_path, monkeypatch):
     _one_line([*base, "--out", str(tmp_path)], "is a directory; give a file name")
     _one_line([*base, "--out", str(tmp_path / "file" / "x.npz")], "is a file, not a folder")
     _one_line([*base, "--out", str(tmp_path / "x.npz"), "--gif", str(tmp_path)], "--gif = ")
-    real = store_mod.os.access
-    monkeypatch.setattr(store_mod.os, "access", lambda p, mode: False if str(p) == str(tmp_path) else real(p, mode))
+    real = files_mod.os.access
+    monkeypatch.setattr(files_mod.os, "access", lambda p, mode: False if str(p) == str(tmp_path) else real(p, mode))
     _one_line([*base, "--out", str(tmp_path / "x.npz")], f"the folder {tmp_path} is not writable")  # (as root: faked)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
 

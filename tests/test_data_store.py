@@ -13,6 +13,7 @@ import time
 import numpy as np
 import pytest
 
+from diffcontact import files as files_mod
 from diffcontact.config import load_task
 from diffcontact.data import generate_dataset, load_split, verify_dataset
 from diffcontact.data import store as store_mod
@@ -139,7 +140,7 @@ def test_failure_between_write_and_rename_leaves_no_loadable_dataset(dataset, tm
             raise KeyboardInterrupt("interrupted")
         return real_replace(src, dst)
 
-    monkeypatch.setattr(store_mod.os, "replace", failing_replace)
+    monkeypatch.setattr(files_mod.os, "replace", failing_replace)
     with pytest.raises(KeyboardInterrupt):
         generate_dataset(TASK, tmp_path, **{**SMALL, "n_val": 5}, force=True)
     monkeypatch.undo()
@@ -151,7 +152,7 @@ def test_failure_between_write_and_rename_leaves_no_loadable_dataset(dataset, tm
 
 _WRITER = """
 import sys, numpy as np
-from diffcontact.data.store import save_arrays
+from diffcontact.files import save_arrays
 save_arrays(sys.argv[1], {"x": np.ones((64, 1024, 1024))})  # 512 MB
 """
 

@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from diffcontact.errors import ConfigError
-from diffcontact.eval.reproduce import Progress, reproduce, run_dir
+from diffcontact.eval.reproduce import Progress, reproduce
+from diffcontact.run_dir import RunDir
 
 TASKS, MODELS = ["BP5-e", "BP5"], ["CM-CD-CLNN", "MLP-CD-CLNN"]
 
@@ -31,14 +32,14 @@ def resumed(tmp_path_factory):
         env=env,
         start_new_session=True,  # (its own process group: the kill reaches its workers too)
     )
-    first = run_dir(out, "BP5-e", "CM-CD-CLNN", 0)
+    first = RunDir.of_cell(out, "BP5-e", "CM-CD-CLNN", 0).path
     deadline = time.monotonic() + 600
     while not (first / "eval" / "metrics.json").is_file() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.2)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     assert (first / "eval" / "metrics.json").is_file(), "the first run did not finish"
-    second = run_dir(out, "BP5", "CM-CD-CLNN", 0)
+    second = RunDir.of_cell(out, "BP5", "CM-CD-CLNN", 0).path
     killed = {"report": (out / "report.md").is_file(), "second": (second / "eval" / "metrics.json").is_file()}
     stamps = {p: p.stat().st_mtime_ns for p in (first / "eval" / "metrics.json", first / "learned.json")}
     lines: list[str] = []
@@ -55,7 +56,7 @@ def test_a_killed_reproduction_resumes_without_redoing_finished_runs(resumed):
     assert any(line.startswith("[1/4 done] running: BP5-e/MLP-CD-CLNN/seed0") for line in lines)
     assert not any(line.startswith("BP5-e/CM-CD-CLNN/seed0: done") for line in lines)
     assert any(line.startswith("BP5/CM-CD-CLNN/seed0: done in") for line in lines)
-    assert (run_dir(out, "BP5", "CM-CD-CLNN", 0) / "eval" / "rollout.gif").is_file()
+    assert (RunDir.of_cell(out, "BP5", "CM-CD-CLNN", 0).path / "eval" / "rollout.gif").is_file()
 
 
 def test_the_quick_report_has_every_section_and_a_row_for_every_run(resumed):

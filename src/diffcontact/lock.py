@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from diffcontact.errors import DiffContactError
+from diffcontact.files import check_output
 
 LOCK_NAME = ".lock"
 
@@ -41,8 +42,6 @@ def output_lock(folder: str | Path, wait: float = 0.0, poll: float = 0.2) -> Ite
     the lock file's path.
 
     Raises LockError if another process holds it after ``wait`` seconds (polled every ``poll`` s)."""
-    from diffcontact.data.store import check_output  # (here: diffcontact.data imports this module)
-
     folder = check_output(folder, "output folder", folder=True)
     made = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcontact.data.store import save_gif
+from diffcontact.files import save_gif
 from diffcontact.systems.base import System
 
 

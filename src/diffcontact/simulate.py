@@ -8,8 +8,8 @@ import numpy as np
 import torch
 
 from diffcontact.config import check_array_size
-from diffcontact.data.store import check_output, save_npz, versions
 from diffcontact.errors import ConfigError
+from diffcontact.files import check_output, save_npz, versions
 from diffcontact.simulator import simulator_for
 from diffcontact.systems import build_task
 

@@ -26,8 +26,8 @@ import lightning.pytorch as pl
 
 from diffcontact.config import load_task
 from diffcontact.data.generate import generate_dataset, worker_pool
-from diffcontact.data.store import versions, write_json, write_text
 from diffcontact.errors import DiffContactError
+from diffcontact.files import versions, write_json, write_text
 from diffcontact.systems import BENCHMARK_TASKS
 
 SETTLE = 5  # the epoch from which the memory should stay flat

@@ -12,8 +12,8 @@ import torch
 import diffcontact
 from diffcontact.bench import check_counts
 from diffcontact.config import available_tasks
-from diffcontact.data.store import write_text
 from diffcontact.errors import ConfigError
+from diffcontact.files import write_text
 from diffcontact.simulator import simulator_for
 from diffcontact.solver import ContactSolver
 from diffcontact.systems import BENCHMARK_TASKS, build_task

@@ -106,7 +106,7 @@ def run_solver_benchmark(
                 print(line, flush=True)
                 lines.append(line)
     if out:
-        from diffcontact.data.store import write_text
+        from diffcontact.files import write_text
 
         write_text(out, "\n".join(lines) + "\n")
     return rows

@@ -42,8 +42,8 @@ import torch
 
 import diffcontact
 from diffcontact.data.generate import make_split
-from diffcontact.data.store import atomic_write
 from diffcontact.errors import ConfigError
+from diffcontact.files import atomic_write
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.systems import BENCHMARK_TASKS, build_task
 from diffcontact.train.module import ContactLightningModule

@@ -1,4 +1,4 @@
-"""Outputs of the control commands, each written atomically (:mod:`diffcontact.data.store`): loss curves (PNG),
+"""Outputs of the control commands, each written atomically (:mod:`diffcontact.files`): loss curves (PNG),
 the motion with its target marked (GIF), and a JSON of results, config and versions."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcontact.data.store import save_figure, save_gif, versions, write_json
+from diffcontact.files import save_figure, save_gif, versions, write_json
 from diffcontact.render import draw_2d
 from diffcontact.systems.base import System
 

@@ -18,19 +18,9 @@ from tqdm import tqdm
 from diffcontact.config import check_array_size
 from diffcontact.data.chunking import gather_windows, select_chunks
 from diffcontact.data.noise import add_noise, check_noise, noise_kind
-from diffcontact.data.store import (
-    FORMAT,
-    SPLITS,
-    config_json,
-    describe,
-    load_meta,
-    load_split,
-    remove_stale,
-    save_arrays,
-    save_meta,
-    versions,
-)
+from diffcontact.data.store import FORMAT, SPLITS, config_json, describe, load_meta, load_split, remove_stale, save_meta
 from diffcontact.errors import ConfigError, DatasetError, DiffContactError
+from diffcontact.files import save_arrays, versions
 from diffcontact.lock import output_lock
 from diffcontact.simulator import simulator_for
 from diffcontact.state import State

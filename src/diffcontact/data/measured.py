@@ -24,18 +24,7 @@ import numpy as np
 import torch
 
 from diffcontact.config import load_task
-from diffcontact.data.store import (
-    FORMAT,
-    SPLITS,
-    check_output,
-    config_json,
-    describe,
-    remove_stale,
-    save_arrays,
-    save_meta,
-    sha256,
-    versions,
-)
+from diffcontact.data.store import FORMAT, SPLITS, config_json, describe, remove_stale, save_meta
 from diffcontact.data.tosses import (
     SAMPLE,
     Tosses,
@@ -46,6 +35,7 @@ from diffcontact.data.tosses import (
 )
 from diffcontact.errors import DatasetError
 from diffcontact.eval.pose_metrics import box_vertices, rotate
+from diffcontact.files import check_output, save_arrays, sha256, versions
 from diffcontact.systems.poses import matrix_to_quaternion, pose_to_points, quaternion_to_matrix, rotation_vector
 
 CONTACT_HEIGHT = 0.003  # m: a frame whose lowest corner is this close to the table is flagged as in contact

@@ -9,19 +9,14 @@ Layout of ``<root>/<task>/``:
   SHA-256, array shapes and dtypes, collision counts and time taken. It is written last, so a folder without it
   is an incomplete dataset.
 
-Every output file of the package (datasets here, and through the writers below simulations, runs, evaluations,
-figures, GIFs and benchmark tables) is written by :func:`atomic_write`: to a temporary name in the same folder,
-then renamed. Loading checks the checksum, the
-recorded shapes and the task config, and raises :class:`DatasetError` on any mismatch.
+Every file is written through :mod:`diffcontact.files` (a temporary name in the same folder, then renamed).
+Loading checks the checksum, the recorded shapes and the task config, and raises :class:`DatasetError` on any
+mismatch.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
-import platform
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,12 +27,12 @@ import torch
 
 from diffcontact.config import TaskConfig, load_task
 from diffcontact.errors import ConfigError, DatasetError
+from diffcontact.files import TMP_PREFIX, sha256, write_json
 
 FORMAT = 1
 META = "meta.json"
 SPLITS = ("train", "val", "test")
 ARRAYS = ("x", "v", "contact", "t", "chunk_start", "chunk_x", "chunk_v", "chunk_collision")
-TMP_PREFIX = ".tmp-"
 
 
 @dataclass(frozen=True)
@@ -64,115 +59,6 @@ class Split:
     def chunk_t(self) -> torch.Tensor:
         """Times of the chunk frames relative to the chunk start: (L,) in s."""
         return self.t[: self.chunk_x.shape[1]] - self.t[0]
-
-
-def sha256(path: str | Path) -> str:
-    """Hex SHA-256 of a file."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 22), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def atomic_write(path: Path, write) -> None:
-    """Write through ``write(fh)`` into a temporary file next to ``path``, fsync, then rename onto ``path``; an
-    OSError (a full disk, ...) leaves no file behind and is raised again naming ``path``."""
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f"{TMP_PREFIX}{path.name}.", dir=path.parent)
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except OSError as err:  # (disk full, read-only, ...: the error names the file; OSError(errno) keeps its subclass)
-        raise OSError(err.errno, f"cannot write {path}: {err.strerror or err}") from err
-    finally:
-        if tmp is not None and os.path.exists(tmp):
-            os.remove(tmp)
-
-
-def check_output(path: str | Path, field: str, folder: bool = False) -> Path:
-    """ConfigError unless ``path`` can be written: a file (or with ``folder`` a directory) that is not the other
-    kind, below a writable directory (missing folders are made when it is written)."""
-    path = Path(path)
-    if path.exists() and path.is_dir() != folder:
-        raise ConfigError(f"{field} = {str(path)!r} is {'a file' if folder else 'a directory'}; give a "
-                          f"{'folder' if folder else 'file'} name")  # fmt: skip
-    parent = path.parent if not path.exists() else path
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise ConfigError(f"{field} = {str(path)!r}: {parent} is a file, not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"{field} = {str(path)!r}: the folder {parent} is not writable")
-    return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def write_json(path: str | Path, obj, sort_keys: bool = False) -> Path:
-    """``obj`` as indented JSON, atomically."""
-    return write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys) + "\n")
-
-
-def write_text(path: str | Path, text: str) -> Path:
-    """UTF-8 text, atomically."""
-    atomic_write(Path(path), lambda fh: fh.write(text.encode()))
-    return Path(path)
-
-
-def save_npz(path: str | Path, **arrays) -> Path:
-    """Arrays into a compressed .npz, atomically."""
-    atomic_write(Path(path), lambda fh: np.savez_compressed(fh, **{k: np.asarray(a) for k, a in arrays.items()}))
-    return Path(path)
-
-
-def save_figure(fig, path: str | Path, dpi: int, colors: int | None = None) -> Path:
-    """A matplotlib figure as PNG, atomically; with ``colors``, reduced to a palette of that many colours (a
-    third of the size for drawings of a few flat colours, such as the rollout strips)."""
-    if colors is None:
-        atomic_write(Path(path), lambda fh: fig.savefig(fh, format="png", dpi=dpi))
-        return Path(path)
-    import io
-
-    from PIL import Image
-
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=dpi)
-    image = Image.open(buffer).convert("RGB").quantize(colors=colors)
-    atomic_write(Path(path), lambda fh: image.save(fh, format="PNG", optimize=True))
-    return Path(path)
-
-
-def save_gif(path: str | Path, frames: list[np.ndarray], seconds_per_frame: float) -> Path:
-    """RGB frames (H, W, 3) uint8 as a looping GIF, atomically."""
-    import imageio.v2 as imageio
-
-    atomic_write(Path(path), lambda fh: imageio.mimsave(fh, frames, format="GIF", duration=seconds_per_frame, loop=0))
-    return Path(path)
-
-
-def versions(**extra: str) -> dict[str, str]:
-    """The versions an output records: diffcontact, torch, numpy, python (and ``extra``)."""
-    from diffcontact import __version__
-
-    base = dict(diffcontact=__version__, torch=torch.__version__, numpy=np.__version__)
-    return base | {"python": platform.python_version()} | extra
-
-
-def save_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> str:
-    """Write arrays to ``path`` (.npz, uncompressed) atomically; returns its SHA-256."""
-    path = Path(path)
-    atomic_write(path, lambda fh: np.savez(fh, **arrays))
-    return sha256(path)
 
 
 def save_meta(folder: str | Path, meta: dict[str, Any]) -> None:

@@ -273,7 +273,7 @@ def _recorded_velocities(tosses: Tosses) -> Tosses:
 def save_contactnets_npz(path: str | Path, tosses: Tosses, length_scale: float = CONTACTNETS_LENGTH_SCALE) -> str:
     """Write tosses in the ContactNets .npz layout (positions and velocities in units of ``length_scale``); returns
     the file's SHA-256."""
-    from diffcontact.data.store import save_arrays
+    from diffcontact.files import save_arrays
 
     frames = np.concatenate(
         [tosses.position / length_scale, tosses.quaternion, tosses.velocity / length_scale, tosses.omega], 1

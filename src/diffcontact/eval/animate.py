@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcontact.data.store import save_figure, save_gif
+from diffcontact.files import save_figure, save_gif
 from diffcontact.render import draw_2d, draw_3d
 from diffcontact.systems.base import System
 

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import torch
 
-from diffcontact.data.store import dataset_folder, save_npz, versions, write_json
+from diffcontact.data.store import dataset_folder
 from diffcontact.errors import DatasetError
 from diffcontact.eval.loading import load_run
 from diffcontact.eval.metrics import (
@@ -21,6 +20,8 @@ from diffcontact.eval.metrics import (
 )
 from diffcontact.eval.rollouts import rollout_split
 from diffcontact.eval.tosses import evaluate_tosses, measured
+from diffcontact.files import save_npz, versions, write_json
+from diffcontact.run_dir import RunDir
 
 METRICS_VERSION = 2  # 2: energy deviation relative to the energy in motion (1: to |E(z_0)|)
 STEPS = 5  # frames of the Fig. 3 error (0 … 4: the training horizon)
@@ -121,12 +122,21 @@ def evaluate_run(
     return metrics
 
 
+def evaluated(run: str | Path, task: str, model: str) -> dict | None:
+    """The metrics of the run's finished evaluation (eval/metrics.json) if they are of (task, model) and of the
+    current metrics, else None."""
+    metrics = RunDir(run).metrics()
+    if metrics is None:
+        return None
+    same = (metrics.get("task"), metrics.get("model"), metrics.get("metrics_version")) == (task, model, METRICS_VERSION)
+    return metrics if same else None
+
+
 def _learned(run: Path) -> dict | None:
     """μ, e, mass ratios and moments, learned against true, from the run's learned.json (None if it has none)."""
-    path = run / "learned.json"
-    if not path.is_file():
+    if not RunDir(run).learned.is_file():
         return None
-    learned = json.loads(path.read_text())
+    learned = RunDir(run).read_learned()
     return {k: learned[k] for k in ("mu", "e", "mass_ratio", "moments", "inertia") if k in learned}
 
 

@@ -1,7 +1,7 @@
 """Load a trained run for evaluation: its config, best checkpoint and model, through a registry of builders.
 
-A run directory (``diffcontact train``) holds ``config.json`` (``{"args": {"task", "model", ...}, "versions"}``),
-``checkpoints/`` and, once finished, ``learned.json`` (which names the best checkpoint).  The model is built by the
+A run directory (:class:`diffcontact.run_dir.RunDir`) records its task and model in ``config.json`` and names its
+best checkpoint in ``learned.json``.  The model is built by the
 builder registered for the run's recorded model name; a builder returns an ``nn.Module`` with
 ``forward(x0, v0, frames) -> (xs, vs)``, x0, v0 (B, P, d) and xs, vs (B, frames, P, d) with frame 0 included.
 Other models (the baselines) join by calling :func:`register_model`; evaluation never branches on the name.
@@ -10,7 +10,6 @@ Other models (the baselines) join by calling :func:`register_model`; evaluation 
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ from pathlib import Path
 from torch import nn
 
 from diffcontact.errors import ConfigError
+from diffcontact.run_dir import RunDir
 from diffcontact.systems.base import Task
 
 # builder(run_dir, config, checkpoint, task) -> the trained model
@@ -56,41 +56,6 @@ class LoadedRun:
         return self.config["args"]["model"]
 
 
-def read_config(run: str | Path) -> dict:
-    """The run's ``config.json``, checked to name a task and a model (ConfigError otherwise)."""
-    path = Path(run) / "config.json"
-    if not path.is_file():
-        raise ConfigError(f"{run} is not a run directory: {path.name} is missing")
-    try:
-        config = json.loads(path.read_text())
-        task, model = config["args"]["task"], config["args"]["model"]
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise ConfigError(f"{path} is unreadable or lacks args.task / args.model: {err!r}") from err
-    if not isinstance(task, str) or not isinstance(model, str):
-        raise ConfigError(f"{path}: args.task = {task!r} and args.model = {model!r} must be names")
-    return config
-
-
-def best_checkpoint(run: str | Path) -> Path:
-    """The checkpoint chosen on the validation split: the one ``learned.json`` names (looked up in the run's own
-    checkpoints/ folder if the run was moved), else the only ``checkpoints/best-*.ckpt``."""
-    run = Path(run)
-    learned = run / "learned.json"
-    if learned.is_file():
-        try:
-            named = json.loads(learned.read_text()).get("best_checkpoint") or ""
-        except (OSError, ValueError, AttributeError) as err:
-            raise ConfigError(f"{learned} is not valid JSON: {err}") from err
-        for path in (Path(named), run / "checkpoints" / Path(named).name):
-            if named and path.is_file():
-                return path
-        raise ConfigError(f"{run}: the best checkpoint {named!r} named in learned.json is missing")
-    found = sorted((run / "checkpoints").glob("best-*.ckpt"))
-    if len(found) != 1:
-        raise ConfigError(f"{run}: expected one checkpoints/best-*.ckpt of a trained run, found {len(found)}")
-    return found[0]
-
-
 def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
     """Load a run's best model through the builder registered for its model name.
 
@@ -102,7 +67,7 @@ def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
     from diffcontact.systems.registry import build_task
 
     run = Path(run)
-    config = read_config(run)
+    config = RunDir(run).read_config()
     name, model = config["args"]["task"], config["args"]["model"]
     built = build_task(name)
     if task is not None and built.config.name != load_task(task).name:
@@ -110,7 +75,7 @@ def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
     builder = _BUILDERS.get(model)
     if builder is None:
         raise ConfigError(f"{run}: model {model!r} has no registered loader; known: {registered_models()}")
-    checkpoint = best_checkpoint(run)
+    checkpoint = RunDir(run).best_checkpoint()
     net = builder(run, config, checkpoint, built)
     return LoadedRun(run_dir=run, config=config, checkpoint=checkpoint, task=built, net=net.eval())
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcontact.data.store import save_figure
+from diffcontact.files import save_figure
 
 
 def _pyplot():

@@ -14,26 +14,27 @@ import numpy as np
 import torch
 
 import diffcontact
-from diffcontact.data.store import write_text
 from diffcontact.eval import published
-from diffcontact.eval.reproduce import evaluated, run_dir, run_times
+from diffcontact.eval.evaluate import evaluated
+from diffcontact.files import write_text
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+from diffcontact.run_dir import RunDir
 
 HOMOGENEOUS = ("BP5-e", "CP3-e", "CP3", "Rope", "Gyro-e", "Gyro")
 
 
 def _status(out: Path, task: str, model: str, seed: int) -> str:
     """What became of a cell without metrics: missing (no way to train the model), failed (with why) or not run."""
-    run = run_dir(out, task, model, seed)
+    run = RunDir.of_cell(out, task, model, seed)
     try:
-        record = json.loads((run / "reproduce.json").read_text())
+        record = json.loads((run.path / "reproduce.json").read_text())
     except (OSError, ValueError):
         record = {}
     if record.get("status") == "failed":
         return f"failed: {record.get('error', '')}"
-    if model not in (*MODEL_NAMES, *BASELINE_NAMES) and not (run / "config.json").is_file():
+    if model not in (*MODEL_NAMES, *BASELINE_NAMES) and not run.config.is_file():
         return "missing (not trainable yet)"
-    if (run / "checkpoints" / "last.ckpt").is_file():
+    if run.last_checkpoint.is_file():
         return "not measured yet (training interrupted; resumes from its last checkpoint)"
     return "not measured yet (not run)"
 
@@ -63,7 +64,9 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
     figures = out / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     seed = seeds[0]
-    metrics = {(t, m, s): evaluated(run_dir(out, t, m, s), t, m) for t in tasks for m in models for s in seeds}
+    metrics = {
+        (t, m, s): evaluated(RunDir.of_cell(out, t, m, s).path, t, m) for t in tasks for m in models for s in seeds
+    }
     first = {(t, m): metrics[t, m, seed] for t in tasks for m in models}
     missing = {(t, m): _status(out, t, m, seed) for (t, m), v in first.items() if v is None}
     total = sum(s["seconds"] for s in settings.get("sessions", []))
@@ -180,7 +183,7 @@ def _runs_table(out, tasks, models, seeds, metrics) -> list[str]:
         for m in models:
             for s in seeds:
                 v = metrics[t, m, s]
-                train, ev = run_times(run_dir(out, t, m, s))
+                train, ev = RunDir.of_cell(out, t, m, s).times()
                 status = "done" if v else _status(out, t, m, s)
                 err = _err(v["trajectory_error"]["mean"], v["trajectory_error"]["ci95"]) if v else "—"
                 lines.append(f"| {t} | {m} | {s} | {status} | {_num(train, 0)} | {_num(ev, 0)} | {err} |")
@@ -284,7 +287,7 @@ def _rollouts(out, tasks, models, seed, first, missing, figures) -> list[str]:
             v = first[t, m]
             if not v:
                 continue
-            with np.load(run_dir(out, t, m, seed) / "eval" / "rollout.npz") as arrays:
+            with np.load(RunDir.of_cell(out, t, m, seed).eval_dir() / "rollout.npz") as arrays:
                 if contact is None:
                     rows["truth"], contact, dt = arrays["x"], arrays["contact"], v["dt"]
                 rows[m] = arrays["x_hat"]
@@ -294,7 +297,7 @@ def _rollouts(out, tasks, models, seed, first, missing, figures) -> list[str]:
             lines += [f"![{t}](figures/rollout_{t}.png)", ""]
         for m in models:
             v = first[t, m]
-            gif = run_dir(out, t, m, seed) / "eval" / "rollout.gif" if v else None
+            gif = RunDir.of_cell(out, t, m, seed).eval_dir() / "rollout.gif" if v else None
             if gif and gif.is_file():
                 lines.append(f"- {m}: [truth beside prediction (GIF)]({os.path.relpath(gif, out)})")
             else:

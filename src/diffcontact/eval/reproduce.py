@@ -22,11 +22,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from diffcontact.config import available_tasks
-from diffcontact.data.store import write_json
 from diffcontact.errors import ConfigError
-from diffcontact.eval.evaluate import METRICS_VERSION
+from diffcontact.eval.evaluate import evaluated
 from diffcontact.eval.loading import registered_models
+from diffcontact.eval.report import write_report
+from diffcontact.files import write_json
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+from diffcontact.run_dir import RunDir
 from diffcontact.systems.registry import BENCHMARK_TASKS
 from diffcontact.threads import thread_env
 
@@ -52,35 +54,18 @@ class Cell:
         return f"{self.task}/{self.model}/seed{self.seed}"
 
 
-def run_dir(out: Path, task: str, model: str, seed: int) -> Path:
-    """Where the run of (task, model, seed) lives under ``out``."""
-    return out / "runs" / task / model / f"seed{seed}"
-
-
-def evaluated(run: Path, task: str, model: str) -> dict | None:
-    """The run's eval/metrics.json if it is complete, of (task, model) and of the current metrics, else None."""
-    try:
-        metrics = json.loads((run / "eval" / "metrics.json").read_text())
-    except (OSError, ValueError):
-        return None
-    same = (metrics.get("task"), metrics.get("model"), metrics.get("metrics_version")) == (task, model, METRICS_VERSION)
-    return metrics if same else None
-
-
 def plan(out: Path, tasks: list[str], models: list[str], seeds: list[int]) -> list[Cell]:
     """Every cell of the matrix with what is left to do, tasks outermost."""
     cells = []
     for task in tasks:
         for model in models:
             for seed in seeds:
-                run = run_dir(out, task, model, seed)
+                run = RunDir.of_cell(out, task, model, seed).path
                 if evaluated(run, task, model):
                     cells.append(Cell(task, model, seed, run, "done"))
                 elif model in MODELS:
-                    cells.append(
-                        Cell(task, model, seed, run, "evaluate" if (run / "learned.json").is_file() else "train")
-                    )
-                elif model in registered_models() and (run / "config.json").is_file():
+                    cells.append(Cell(task, model, seed, run, "evaluate" if RunDir(run).learned.is_file() else "train"))
+                elif model in registered_models() and RunDir(run).config.is_file():
                     cells.append(Cell(task, model, seed, run, "evaluate"))
                 else:
                     why = "no loader registered" if model not in registered_models() else "no run"
@@ -177,18 +162,6 @@ class Progress:
         )
 
 
-def run_times(run: Path) -> tuple[float | None, float | None]:
-    """Training wall time (learned.json, over all the sessions of a resumed run) and the evaluation's
-    (eval/metrics.json) of a run, in s (None: unknown, e.g. an evaluation written before its time was recorded)."""
-    times = []
-    for file, key in (("learned.json", "wall_time_s"), ("eval/metrics.json", "seconds")):
-        try:
-            times.append(float(json.loads((run / file).read_text())[key]))
-        except (OSError, ValueError, KeyError, TypeError):
-            times.append(None)
-    return times[0], times[1]
-
-
 def expected_seconds(out: Path, cells: list[Cell]) -> dict[str, float]:
     """The expected seconds of each cell to do, from the finished runs in OUT/runs: a training, the mean training
     time (learned.json, all sessions) of the same model's runs scaled by the task's (the mean over its finished
@@ -196,7 +169,7 @@ def expected_seconds(out: Path, cells: list[Cell]) -> dict[str, float]:
     latter.  Cells with nothing to go by are left out."""
     trained, evaluations = [], []
     for learned in out.glob("runs/*/*/seed*/learned.json"):
-        train, evaluation = run_times(learned.parent)
+        train, evaluation = RunDir(learned.parent).times()
         if train is None:
             continue
         trained.append((learned.parts[-4], learned.parts[-3], train))
@@ -258,7 +231,6 @@ def reproduce(
     whenever a run starts or ends).
     """
     from diffcontact.data.generate import generate_dataset
-    from diffcontact.eval.report import write_report
 
     tasks, models, seeds = list(tasks or BENCHMARK_TASKS), list(models or MODELS), list(seeds or [0])
     for task in tasks:

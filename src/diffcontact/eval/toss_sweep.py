@@ -14,8 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from diffcontact.data.store import load_meta, versions, write_json, write_text
+from diffcontact.data.store import load_meta
 from diffcontact.errors import DiffContactError
+from diffcontact.files import versions, write_json, write_text
+from diffcontact.run_dir import METRICS as METRICS_FILE
+from diffcontact.run_dir import RunDir
 
 SIZES = (8, 16, 32, 64, 128, 256)
 METHODS = ("CM-CD-CLNN", "CMr-CD-CLNN", "MLP-CD-CLNN", "IN-CP-CLNN", "mujoco", "bullet", "nominal")
@@ -51,7 +54,9 @@ def _cell(source, out: Path, method: str, n: int | None, folder: Path, seed: int
         run = out / "peers" / label / method
     else:
         run = out / "runs" / label / method
-    metrics = run / ("eval/metrics.json" if method not in PEERS else "metrics.json")
+    metrics = (
+        RunDir(run).eval_dir() / METRICS_FILE if method not in PEERS else run / METRICS_FILE
+    )  # (a peer's folder: its own)
     if metrics.is_file():
         return json.loads(metrics.read_text())
     started = time.perf_counter()
@@ -64,7 +69,7 @@ def _cell(source, out: Path, method: str, n: int | None, folder: Path, seed: int
     else:
         from diffcontact.train.run import train_run
 
-        resume = (run / "checkpoints" / "last.ckpt").is_file()
+        resume = RunDir(run).last_checkpoint.is_file()
         train_run(task, method, data_root=folder, out=run, epochs=epochs, seed=0, resume=resume, progress=False)
         result = evaluate_run(run, data_root=folder, pictures=False)
     seconds = time.perf_counter() - started
@@ -128,8 +133,8 @@ def _number(value: float) -> str:
 
 def sweep_figure(table: dict[str, dict[str, dict]], path: Path) -> Path:
     """Position error (% of the width) against the number of training tosses, one line per method."""
-    from diffcontact.data.store import save_figure
     from diffcontact.eval.plots import _pyplot
+    from diffcontact.files import save_figure
 
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.0, 4.0))

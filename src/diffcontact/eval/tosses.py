@@ -15,11 +15,12 @@ import torch
 from torch import nn
 
 from diffcontact.data.measured import tosses_to_points
-from diffcontact.data.store import load_meta, save_arrays, versions, write_json
+from diffcontact.data.store import load_meta
 from diffcontact.data.tosses import Tosses, load_tosses
 from diffcontact.errors import DatasetError
 from diffcontact.eval.pose_metrics import box_toss_metrics
 from diffcontact.eval.rollouts import predict
+from diffcontact.files import save_arrays, versions, write_json
 from diffcontact.systems.poses import points_to_pose
 
 SHOWN_TOSSES = 4  # test tosses drawn in the figure and the GIF
@@ -145,8 +146,8 @@ def evaluate_tosses(
 def draw_tosses(tosses: Tosses, predicted: dict[str, np.ndarray], path: Path, table_height: float) -> Path:
     """Recorded (solid) against predicted (dashed) centre trajectories of the first ``SHOWN_TOSSES`` tosses: the
     path seen from above and the height over time."""
-    from diffcontact.data.store import save_figure
     from diffcontact.eval.plots import _pyplot
+    from diffcontact.files import save_figure
 
     plt = _pyplot()
     fig, axes = plt.subplots(2, SHOWN_TOSSES, figsize=(3.2 * SHOWN_TOSSES, 6.0), squeeze=False)
@@ -182,9 +183,9 @@ def toss_gif(
 ) -> Path:
     """A GIF of the first ``SHOWN_TOSSES`` tosses side by side in 3-D: the recorded box (black) and the predicted one
     (red) every ``every`` frames, over the longest of them."""
-    from diffcontact.data.store import save_gif
     from diffcontact.eval.plots import _pyplot
     from diffcontact.eval.pose_metrics import box_vertices, rotate
+    from diffcontact.files import save_gif
 
     plt = _pyplot()
     shown = min(SHOWN_TOSSES, tosses.n)

@@ -28,6 +28,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from diffcontact.errors import DiffContactError
     from diffcontact.eval.evaluate import evaluate_run
+    from diffcontact.run_dir import RunDir
     from diffcontact.train.run import train_run
 
     try:
@@ -35,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
             settings = dict(
                 seed=args.seed, out=args.run, data_root=args.data, epochs=args.epochs, batch_size=args.batch_size
             )
-            resume = (args.run / "checkpoints" / "last.ckpt").is_file()
+            resume = RunDir(args.run).last_checkpoint.is_file()
             try:
                 train_run(args.task, args.model, resume=resume, progress=False, **settings)
             except Exception as err:  # (a checkpoint damaged by the interruption: train afresh, once)

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from diffcontact.data.measured import with_first_states
-from diffcontact.data.store import save_arrays, versions, write_json
 from diffcontact.data.tosses import Tosses, read_tosses, resting_table_height, split_tosses, training_subset
 from diffcontact.errors import ConfigError
 from diffcontact.eval.pose_metrics import box_toss_metrics
+from diffcontact.files import save_arrays, versions, write_json
 from diffcontact.peers import ENGINES, load_engine, require
 from diffcontact.peers.cube import GRAVITY, HALF_EXTENT, INERTIA, MASS, SUBSTEPS, Param, nominal
 

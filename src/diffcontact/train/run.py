@@ -14,10 +14,12 @@ import lightning.pytorch as pl
 import torch
 
 from diffcontact.config import load_task
-from diffcontact.data.store import TMP_PREFIX, atomic_write, load_meta, save_figure, versions, write_json
+from diffcontact.data.store import load_meta
 from diffcontact.errors import ConfigError
+from diffcontact.files import TMP_PREFIX, atomic_write, save_figure, versions, write_json
 from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+from diffcontact.run_dir import RunDir
 from diffcontact.train.coef_start import COEF_STARTS, scan_coefficients
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule
@@ -169,7 +171,7 @@ class _RunCheckpoint(pl.callbacks.ModelCheckpoint):
 
 
 class _AtomicCheckpointIO(pl.plugins.TorchCheckpointIO):
-    """Checkpoints written through ``data.store.atomic_write`` (a temporary file in the checkpoint folder, fsync,
+    """Checkpoints written through ``files.atomic_write`` (a temporary file in the checkpoint folder, fsync,
     rename): a process killed while one is written leaves the previous one whole.  Lightning's own write goes
     through a temporary file in the system's temporary folder, moved by a copy when that is another file system,
     and leaves it behind when killed."""
@@ -218,11 +220,11 @@ def _resume_settings(run: Path, given: dict, epochs: int | None) -> tuple[dict, 
     epochs it has trained: raises ConfigError if the run has no checkpoint or config, or if a ``given`` setting
     (not None) differs from the recorded one.  (Whether the epochs planned are fewer than those trained is known
     only with the data: ``min_steps``.)"""
-    last = run / "checkpoints" / "last.ckpt"
-    if not last.is_file() and not (run / "config.json").is_file():
+    last = RunDir(run).last_checkpoint
+    if not last.is_file() and not RunDir(run).config.is_file():
         raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
     try:
-        recorded = json.loads((run / "config.json").read_text())["args"]
+        recorded = json.loads(RunDir(run).config.read_text())["args"]
         done, trained = 0, {}  # (a run stopped before its first checkpoint starts again)
         if last.is_file():
             checkpoint = torch.load(last, map_location="cpu", weights_only=False)
@@ -382,8 +384,8 @@ def train_run(
     )
     first = _rank(devices or 1) == 0  # (the process that writes: the only one before a DDP launch)
     with output_lock(run) if first else nullcontext():  # (one command at a time writes a run)
-        ckpt_dir = run / "checkpoints"
-        last = ckpt_dir / "last.ckpt"
+        ckpt_dir = RunDir(run).checkpoints
+        last = RunDir(run).last_checkpoint
         done = 0  # (epochs trained before: a resumed run's)
         if resume:
             given = dict(
@@ -481,7 +483,7 @@ def train_run(
         if first:
             run.mkdir(parents=True, exist_ok=True)
             write_json(
-                run / "config.json",
+                RunDir(run).config,
                 {"args": args, "versions": versions(lightning=pl.__version__), "parallel": parallel},
             )
         pl.utilities.rank_zero_info(
@@ -553,7 +555,7 @@ def train_run(
             num_nodes=args["num_nodes"],
             strategy=pl.strategies.DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
         )
-        scan = run / "coef_start.json"
+        scan = RunDir(run).coef_start
         if start is None and args["coef_start"] == "scan" and model in MODEL_NAMES:
             data.setup()
             train = data.splits["train"]
@@ -584,7 +586,7 @@ def train_run(
         summary["wall_time_s"] = module.seconds_before + time.perf_counter() - started  # (over all sessions)
         summary["run_dir"] = str(run)
         if trainer.is_global_zero:
-            write_json(run / "learned.json", summary)
+            write_json(RunDir(run).learned, summary)
             plot_losses(run / "logs" / "csv", run / "loss.png")
         return summary
 
@@ -593,20 +595,15 @@ def summarize_run(run: str | Path) -> dict:
     """Recompute the learned-against-true part of ``run``/learned.json from its best checkpoint and training data
     (after an upgrade of the summary); the run's counters and times are kept.  Returns the new summary."""
     from diffcontact.data.store import load_split
-    from diffcontact.eval.loading import best_checkpoint
 
-    run = Path(run)
-    try:
-        old = json.loads((run / "learned.json").read_text())
-        args = json.loads((run / "config.json").read_text())["args"]
-    except (OSError, ValueError, KeyError) as err:
-        raise ConfigError(f"{run} is not a finished training run (learned.json, config.json): {err}") from err
-    best = best_checkpoint(run)  # (in the run's own folder if it was moved)
+    run = RunDir(run)
+    old, args = run.read_learned(), run.read_config()["args"]
+    best = run.best_checkpoint()  # (in the run's own folder if it was moved)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
     config = chosen.task.config
     train = load_split(Path(args["data_root"]) / config.name, "train", config)
     fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
     summary = {**fresh, **kept}
-    write_json(run / "learned.json", summary)
+    write_json(run.learned, summary)
     return summary
