@@ -121,6 +121,8 @@ def test_the_reproduce_worker_continues_an_interrupted_training(trained, tmp_pat
     assert main([*args, "--batch-size", "8", "--frames", "6"]) == 0
     assert json.loads((run / "learned.json").read_text())["epochs_trained"] == 2
     logs = sorted((run / "logs" / "csv").glob("version_*/metrics.csv"))
-    epochs = [sorted({int(r["epoch"]) for r in csv.DictReader(p.open()) if r.get("epoch")}) for p in logs]
+    epochs = [
+        sorted({int(r["epoch"]) for r in csv.DictReader(p.read_text().splitlines()) if r.get("epoch")}) for p in logs
+    ]
     assert epochs == [[0], [1]]  # the second session trained epoch 1 only: resumed, not restarted
     assert json.loads((run / "eval" / "metrics.json").read_text())["frames"] == 6

@@ -19,7 +19,8 @@ def test_simulate_writes_npz_and_gif(tmp_path):
         app, ["simulate", "BD5", "--n", "3", "--steps", "12", "--seed", "4", "--out", str(out), "--gif", str(gif)]
     )
     assert res.exit_code == 0, res.output
-    data = np.load(out)
+    with np.load(out) as stored:
+        data = {k: stored[k] for k in stored.files}
     assert data["x"].shape == (3, 12, 15, 2) and data["v"].shape == (3, 12, 15, 2)
     assert data["t"].shape == (12,) and np.allclose(np.diff(data["t"]), 0.01)
     assert data["energy"].shape == (3, 12) and data["contact"].shape == (3, 12)
@@ -40,7 +41,8 @@ def test_simulate_same_seed_same_data(tmp_path):
     a, b = tmp_path / "a.npz", tmp_path / "b.npz"
     simulate_task("CP3", 2, 5, 7, str(a))
     simulate_task("CP3", 2, 5, 7, str(b))
-    assert np.array_equal(np.load(a)["x"], np.load(b)["x"])
+    with np.load(a) as first, np.load(b) as second:
+        assert np.array_equal(first["x"], second["x"])
 
 
 def test_simulate_unknown_task_is_a_config_error(tmp_path):

@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numba
 import pytest
@@ -200,7 +201,7 @@ def test_busy_processes_die_with_the_benchmark_even_if_it_is_killed():
     parent.stdout.close()
     for _ in range(50):  # (gone, or a zombie waiting to be reaped by init)
         try:
-            state = open(f"/proc/{child}/stat").read().split()[2]
+            state = Path(f"/proc/{child}/stat").read_text().split()[2]
         except FileNotFoundError:
             break
         if state in ("Z", "X"):

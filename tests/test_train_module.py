@@ -11,6 +11,9 @@ from torch.utils.data import DataLoader, TensorDataset
 import diffcontact as dc
 from diffcontact.train.module import ContactLightningModule
 
+# (these tests fit the module on a training loader alone: Lightning's notice that validation is skipped is expected)
+pytestmark = pytest.mark.filterwarnings("ignore:You defined a `validation_step` but have no `val_dataloader`")
+
 
 def _loader(seed: int = 0) -> DataLoader:
     X, V = _colliding_chunks(dc.build_task("BP1"), 16, seed=seed)
@@ -39,6 +42,7 @@ def test_a_step_with_non_finite_gradients_is_skipped_entirely():
     assert all(torch.equal(before[k], after[k]) for k in before)  # no update, no weight decay
 
 
+@pytest.mark.filterwarnings("ignore:Be aware that when using `ckpt_path`")  # (resumed without the checkpoint callback)
 def test_resume_continues_from_the_saved_epoch_with_the_same_optimiser_state(tmp_path):
     torch.manual_seed(0)
     straight = _module()

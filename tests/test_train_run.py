@@ -45,7 +45,8 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     assert config["args"]["task"] == "BP1" and "torch" in config["versions"]
     assert config["args"]["preset"] == "default" and config["args"]["lr"] == 1e-2  # (epochs given explicitly)
     assert config["args"]["epochs"] == 2 and config["args"]["schedule"] == "cosine"
-    rates = [float(r["train/lr"]) for r in csv.DictReader(next((run / "logs" / "csv").rglob("metrics.csv")).open())
+    log = next((run / "logs" / "csv").rglob("metrics.csv")).read_text().splitlines()
+    rates = [float(r["train/lr"]) for r in csv.DictReader(log)
              if r.get("train/lr")]  # fmt: skip
     assert rates[0] == pytest.approx(1e-2) and rates[1] == pytest.approx(0.5 * (1e-2 + 1e-4))  # cosine, halfway
 
@@ -115,7 +116,7 @@ def test_a_small_dataset_trains_for_the_task_files_fewest_optimiser_steps(data_r
                         schedule="constant", progress=False)  # fmt: skip
     # (one batch an epoch: the 16 training trajectories' chunks in one batch of 1000)
     assert summary["optimiser_steps"] == 9 and summary["epochs_trained"] == 9
-    metrics = next((tmp_path / "run" / "logs" / "csv").rglob("metrics.csv")).open()
+    metrics = next((tmp_path / "run" / "logs" / "csv").rglob("metrics.csv")).read_text().splitlines()
     validated = [int(r["epoch"]) for r in csv.DictReader(metrics) if r.get("val/loss")]
     assert validated == [8], validated  # (every 9th epoch: one validation, as 1 epoch asked for would have)
     # resumed with the epochs it was asked for, the run is finished: its planned epochs, not 1, are the bound

@@ -199,8 +199,8 @@ def load_split(
     path = verify_file(folder, split, meta)
     info = meta["splits"][split]
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in ARRAYS}
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:  # (np.load leaks its own handle
+            arrays = {k: data[k] for k in ARRAYS}  # on a corrupt file)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as err:
         raise DatasetError(f"{path} is corrupt or incomplete: {err}") from err
     for key, arr in arrays.items():

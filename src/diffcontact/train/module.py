@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from collections import Counter
 
 import lightning.pytorch as pl
@@ -31,6 +32,31 @@ log = logging.getLogger(__name__)
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
 _FAILED = [s.name for s in Status if is_failure(s)]  # (the statuses counted as solver failures)
 TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
+
+
+class _NoAdvertisement(logging.Filter):
+    """Drops Lightning's "💡 Tip" advertisement (litlogger, its cloud service) from its rank-zero log."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("💡 Tip")
+
+
+_QUIET = _NoAdvertisement()
+
+
+def quiet_lightning() -> None:
+    """Lightning's advertisement, its use of a name that torch has deprecated (``LeafSpec``) and its notice that a
+    resumed run's checkpoint folder is not empty, none of which a user can act on, silenced where they come from;
+    every other message and warning stays."""
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        logger = logging.getLogger(name)
+        if _QUIET not in logger.filters:
+            logger.addFilter(_QUIET)
+    warnings.filterwarnings(
+        "ignore", r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning, r"lightning\.pytorch\."
+    )
+    # (a resumed run's checkpoint folder is not empty by design; a fresh run into one is refused before Lightning)
+    warnings.filterwarnings("ignore", r"Checkpoint directory .* exists and is not empty", UserWarning)
 
 
 class ContactLightningModule(pl.LightningModule):
@@ -61,6 +87,7 @@ class ContactLightningModule(pl.LightningModule):
         axis_scale: float = 1.0,
     ):
         super().__init__()
+        quiet_lightning()  # (the module is what brings Lightning in: its notices are quieted wherever it is used)
         if schedule not in SCHEDULES:
             raise ConfigError(f"schedule = {schedule!r} is not one of {list(SCHEDULES)}")
         if train_loss not in TRAIN_LOSSES:

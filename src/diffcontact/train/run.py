@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import json
-import logging
 import os
 import time
-import warnings
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -22,7 +20,7 @@ from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.run_dir import RunDir
 from diffcontact.train.coef_start import COEF_STARTS, scan_coefficients
 from diffcontact.train.datamodule import ContactDataModule
-from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule
+from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule, quiet_lightning
 from diffcontact.train.summary import learned_summary
 
 
@@ -297,28 +295,6 @@ def _rank(devices: int) -> int:
     return int(os.environ.get("NODE_RANK", 0)) * devices + int(os.environ.get("LOCAL_RANK", 0))
 
 
-class _NoAdvertisement(logging.Filter):
-    """Drops Lightning's "💡 Tip" advertisement (litlogger, its cloud service) from its rank-zero log."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith("💡 Tip")
-
-
-_QUIET = _NoAdvertisement()
-
-
-def _quiet_lightning() -> None:
-    """Lightning's advertisement and its use of a name that torch has deprecated (``LeafSpec``), neither of
-    which a user can act on, silenced where they come from; every other message and warning stays."""
-    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
-        logger = logging.getLogger(name)
-        if _QUIET not in logger.filters:
-            logger.addFilter(_QUIET)
-    warnings.filterwarnings(
-        "ignore", r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning, r"lightning\.pytorch\."
-    )
-
-
 def train_run(
     task: str,
     model: str | None = None,
@@ -374,7 +350,7 @@ def train_run(
     for key, value in (("devices", devices), ("num_nodes", num_nodes)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
-    _quiet_lightning()
+    quiet_lightning()
     config = load_task(task)  # (a packaged task's name or a task file's path, recorded as found from anywhere)
     task = config.ref
     run = (
