@@ -12,6 +12,7 @@ import diffcontact as dc
 from diffcontact.data.generate import generate_dataset
 from diffcontact.data.store import load_split
 from diffcontact.errors import ConfigError
+from diffcontact.models import build_model
 from diffcontact.train.module import ContactLightningModule
 from diffcontact.train.run import planned_epochs, resolve_preset, task_training, train_run
 from diffcontact.train.summary import learned_summary, slot_contacts
@@ -261,3 +262,20 @@ def test_the_mu_pull_is_checked_and_recorded():
     _check_numbers(resolve_preset("default", mu_l1=0.0))
     assert resolve_preset("default", task_training("BD5"))["mu_l1"] == 1e-5
     assert resolve_preset("default")["mu_l1"] == resolve_preset("published")["mu_l1"] == 0.0
+
+
+def test_a_baseline_weighs_velocities_whatever_the_tasks_setting_for_the_contact_models(data_root, tmp_path):
+    """A task's velocity_weight = 0 (the real cube's, for the contact models' windows) would leave MLP-CD-CLNN's
+    velocity jump without a gradient on one-step pairs: the jump moves no position within its step."""
+    task = _task_file(tmp_path, "velocity_weight = 0.0\n")
+    train_run(str(task), "MLP-CD-CLNN", epochs=1, out=tmp_path / "mlp", data_root=data_root, batch_size=64,
+              progress=False)  # fmt: skip
+    train_run(str(task), epochs=1, out=tmp_path / "cm", data_root=data_root, batch_size=64, progress=False)
+    config = {r: json.loads((tmp_path / r / "config.json").read_text())["args"] for r in ("mlp", "cm")}
+    assert {r: c["velocity_weight"] for r, c in config.items()} == {"mlp": 1.0, "cm": 0.0}
+    net = build_model(dc.build_task("BP1"), "MLP-CD-CLNN", hidden=16, layers=1)
+    x, v = torch.randn(4, 1, 2, dtype=torch.float64), torch.randn(4, 1, 2, dtype=torch.float64)
+    x[:, :, 1] = -5.0  # (the ball far below the floor: the jump applies)
+    px, pv = net(x, v, 2)
+    assert torch.autograd.grad(px.sum(), net.jump[0].weight, allow_unused=True)[0] is None  # (positions: no gradient)
+    assert torch.autograd.grad(pv.sum(), net.jump[0].weight)[0].abs().sum() > 0
