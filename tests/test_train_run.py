@@ -279,3 +279,9 @@ def test_a_baseline_weighs_velocities_whatever_the_tasks_setting_for_the_contact
     px, pv = net(x, v, 2)
     assert torch.autograd.grad(px.sum(), net.jump[0].weight, allow_unused=True)[0] is None  # (positions: no gradient)
     assert torch.autograd.grad(pv.sum(), net.jump[0].weight)[0].abs().sum() > 0
+
+
+def test_a_gpu_is_refused_with_its_reason(tmp_path):
+    with pytest.raises(ConfigError, match=r"accelerator = 'gpu' is not one of \['cpu'\]: .* on the CPU"):
+        train_run("BP1", out=tmp_path / "run", accelerator="gpu", progress=False)
+    assert not (tmp_path / "run").exists()

@@ -236,7 +236,11 @@ def train(
         None, "--devices", help="Processes per machine (DDP when more than one; default 1, or the run's with --resume)."
     ),
     num_nodes: int = typer.Option(None, "--num-nodes", help="Machines (default 1): docs/scaling.md."),
-    accelerator: str = typer.Option("cpu", "--accelerator", help="cpu (gloo between processes), gpu (NCCL) or auto."),
+    accelerator: str = typer.Option(
+        "cpu",
+        "--accelerator",
+        help="cpu, the only one (docs/scaling.md, GPUs).",
+    ),
     threads: int = typer.Option(
         1,
         "--threads",

@@ -210,7 +210,7 @@ RUN_SETTINGS = (
     "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
     "potential", "velocity_weight", "moments_init", "axis_scale", "min_steps", "coef_start",
 )  # fmt: skip
-ACCELERATORS = ("cpu", "gpu", "auto")
+ACCELERATORS = ("cpu",)  # (the physics path keeps its constant tensors on the CPU: docs/scaling.md, GPUs)
 
 
 def _resume_settings(run: Path, given: dict, epochs: int | None) -> tuple[dict, int]:
@@ -338,7 +338,7 @@ def train_run(
     schedule); the result is the same as a run that was not interrupted, also after a SIGKILL at any moment
     (checkpoints are written atomically; a run stopped before its first checkpoint starts again from its config).
     ``devices`` processes on each of ``num_nodes`` machines (default 1 and 1; recorded, as the batch) train with
-    Lightning's DDP strategy (gloo on CPUs, NCCL on GPUs; ``accelerator`` "cpu", "gpu" or "auto"): ``batch_size``
+    Lightning's DDP strategy (gloo between CPU processes; ``accelerator`` "cpu", the only one so far): ``batch_size``
     is the batch of each process, the effective batch is batch_size × devices × num_nodes, and the learning rate is
     not scaled with it (all three are logged and recorded in config.json).  Only the first process writes the
     files; the counters are summed over the processes (``ContactLightningModule.totals``).  docs/scaling.md.
@@ -346,7 +346,10 @@ def train_run(
     Returns the learned summary (on the other processes of a DDP run: the same, not written).
     """
     if accelerator not in ACCELERATORS:
-        raise ConfigError(f"accelerator = {accelerator!r} is not one of {list(ACCELERATORS)}")
+        raise ConfigError(
+            f"accelerator = {accelerator!r} is not one of {list(ACCELERATORS)}: the systems and the contact model keep "
+            "their constant tensors on the CPU, and no run on a GPU has been made"
+        )
     for key, value in (("devices", devices), ("num_nodes", num_nodes)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
