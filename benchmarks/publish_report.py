@@ -16,9 +16,9 @@ import re
 import shutil
 from pathlib import Path
 
-from diffcontact.data.store import write_text
 from diffcontact.eval.report import write_report
 from diffcontact.eval.reproduce import MODELS
+from diffcontact.files import write_text
 from diffcontact.systems.registry import BENCHMARK_TASKS
 
 START, END = "<!-- report:start -->", "<!-- report:end -->"

@@ -15,7 +15,7 @@ Definitions (per batch element, on the rows in use: active contacts, without the
 - q's component along the flat directions, Π_N q, is a velocity that no contact impulse can change (the joints
   fix it): for physical data q = J v, and Π_N q = 0 when v obeys the joints (J_E v = 0).  The integrator leaves a
   drift (measured in the ground-truth simulation of the gyroscope with μ = 1.2: ‖Π_N q‖/‖q‖ median 1e-4, at most
-  2e-2; in training up to 0.1 for all but 0.1 % of the problems, benchmarks/flat_stats.py).  It is dropped with
+  2e-2; in training up to 0.1 for all but 0.1 % of the problems, investigations/flat_stats.py).  It is dropped with
   the flat eigenvalues where it is at the level of A's rounding (≤ τ·‖q‖), and where it is drift
   (≤ ``Q_TOL`` = 0.1) and a flat direction enters the friction cones (where, kept, it would make the QP unbounded
   or pick the far end of an unbounded set); elsewhere the drift picks the minimiser, which is then unique, as it

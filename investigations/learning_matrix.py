@@ -1,8 +1,8 @@
 """Train every (task, model, seed) of the learning matrix with the defaults and collate the results (issue 13).
 
-    python benchmarks/learning_matrix.py --jobs 2 --out runs/matrix            # 8 tasks x 4 models, seed 0
-    python benchmarks/learning_matrix.py --models CM-CD-CLNN --seeds 1 2 ...    # more seeds
-    python benchmarks/learning_matrix.py --collate-only --out runs/matrix       # the table of what has run
+    python investigations/learning_matrix.py --jobs 2 --out runs/matrix            # 8 tasks x 4 models, seed 0
+    python investigations/learning_matrix.py --models CM-CD-CLNN --seeds 1 2 ...    # more seeds
+    python investigations/learning_matrix.py --collate-only --out runs/matrix       # the table of what has run
 
 Each run is `diffcontact train TASK --model MODEL --seed S --out OUT/TASK/MODEL/seedS --no-progress` (no other
 flag: the defaults), in its own process with one thread (OMP_NUM_THREADS=1, OMP_WAIT_POLICY=PASSIVE), ``--jobs`` at

@@ -1,6 +1,6 @@
 """How often training meets flat directions (solver/flat.py), and how large q's flat part is there.
 
-python benchmarks/flat_stats.py RUN_DIR [--data data]: replays one epoch of the run's training batches through
+python investigations/flat_stats.py RUN_DIR [--data data]: replays one epoch of the run's training batches through
 the model of its best checkpoint (and through the initial model of the same seed), and prints per phase the number
 of contact problems, those with flat directions, how many had q's flat part at rounding level (minimum-norm
 minimiser) and how many of those had more than one minimiser, the largest relative flat part of q among them, and

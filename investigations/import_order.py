@@ -1,4 +1,4 @@
-"""The cost of importing torch before diffcontact: python benchmarks/import_order.py [K d B rounds].
+"""The cost of importing torch before diffcontact: python investigations/import_order.py [K d B rounds].
 
 Imported first, diffcontact sets ``OMP_WAIT_POLICY=PASSIVE`` before torch loads its OpenMP runtime; imported after
 torch, it is too late (the runtime read the variable when it loaded) and torch's workers spin after each of its

@@ -1,7 +1,7 @@
 """The training loss as a function of μ and e around the truth, with every other property true (issue 13).
 
-    python benchmarks/loss_landscape.py Gyro --out docs/figures/gyro_loss_landscape.png
-    python benchmarks/loss_landscape.py Gyro --regs 0 1e-2 1e-3 1e-4 --no-grid      # the CMr bias in e
+    python investigations/loss_landscape.py Gyro --out docs/figures/gyro_loss_landscape.png
+    python investigations/loss_landscape.py Gyro --regs 0 1e-2 1e-3 1e-4 --no-grid      # the CMr bias in e
 
 The loss is the training loss (mean absolute error of the predicted chunk, positions and velocities) over the
 task's training chunks, predicted in float64 from each chunk's first frame by the exact simulator with the true

@@ -1,6 +1,6 @@
 """The full-batch training loss and its gradient as one slot's μ or e of a trained run is set to given values.
 
-    python benchmarks/slot_sweep.py runs/superseded/BD5-CM-CD-CLNN-mu-sixth/seed0 4 0.5,0.77,1.0,1.2,1.4,1.6
+    python investigations/slot_sweep.py runs/superseded/BD5-CM-CD-CLNN-mu-sixth/seed0 4 0.5,0.77,1.0,1.2,1.4,1.6
 
 Loads the run's best checkpoint and its training chunks (in the run's dtype), sets the coefficient of ``slot`` to
 each value (every other parameter as learned) and prints the loss over all training chunks and its derivative

@@ -1,7 +1,7 @@
 """The error floor of the regularised contact model (CMr) on the test trajectories (Fig. 4), with every property true.
 
-    python benchmarks/cmr_floor.py CP3-e --runs runs/reproduction/runs
-    python benchmarks/cmr_floor.py Gyro --runs runs/reproduction/runs
+    python investigations/cmr_floor.py CP3-e --runs runs/reproduction/runs
+    python investigations/cmr_floor.py Gyro --runs runs/reproduction/runs
 
 The simulator with CMr (effective mass A + reg·I) and the task's true inertia, potential, μ and e is rolled out in
 float64 from the test trajectories' initial states and compared with the ground truth (CM, the same initial states):

@@ -1,7 +1,7 @@
 """How much the data say about the mass ratios: the training loss of the true model with tilted masses, beside
 what a trained model still misses (docs/investigations.md, the Rope's masses).
 
-    python benchmarks/mass_tilt.py Rope --run runs/matrix-final/Rope/CM-CD-CLNN/seed0
+    python investigations/mass_tilt.py Rope --run runs/matrix-final/Rope/CM-CD-CLNN/seed0
 
 Masses are tilted linearly along the bodies, m_i·(1 + a·i/(n − 1)), for each tilt a; the loss (the training loss:
 0.5·(mean |x̂ − x| + mean |v̂ − v|)) over the training chunks is evaluated with the exact simulator in float64 and

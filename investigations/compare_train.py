@@ -1,7 +1,7 @@
 """The training step of two source trees side by side: `diffcontact bench train` of each, alternating task by task
 in one run, and the losses of a few fixed-seed training steps of each (the same to rounding?).
 
-    python benchmarks/compare_train.py --base /path/to/old/src [--tasks BP5-e CP3] [--threads 1] [--repeats 5]
+    python investigations/compare_train.py --base /path/to/old/src [--tasks BP5-e CP3] [--threads 1] [--repeats 5]
 
 The new tree is this checkout's ``src``.  Each measurement is its own process (``python -m diffcontact.cli``), with
 PYTHONPATH set to the tree; the load average is printed with every row, as the machine may be shared.

@@ -1,7 +1,7 @@
 """Why a trained run's test trajectories are outliers: which contact slots they collide on, and the training loss
 as a function of one slot's μ (docs/investigations.md, "BP5's and BD5's outliers").
 
-    python benchmarks/slot_profile.py runs/BP5 --slot 29      # after diffcontact train BP5 and evaluate
+    python investigations/slot_profile.py runs/BP5 --slot 29      # after diffcontact train BP5 and evaluate
 
 Prints the test trajectories with the largest 5-step errors (from RUN/eval/metrics.json) and the slots each collides
 on in frames 1-4 (replayed with the true parameters), then the L1 loss over the training chunks that hold a

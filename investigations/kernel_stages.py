@@ -1,4 +1,4 @@
-"""The compiled kernel's stages per problem: python benchmarks/kernel_stages.py [K d B].
+"""The compiled kernel's stages per problem: python investigations/kernel_stages.py [K d B].
 
 CPU µs per problem (best of 5, one thread) of the interior-point method alone (``lanes.solve`` without polishing),
 of polishing (with it, minus without), of the adjoint solve of the backward pass (``lanes.adjoint``) and of the
