@@ -25,7 +25,9 @@ def _trainer(**kw) -> pl.Trainer:
 
 
 def _module() -> ContactLightningModule:
-    return ContactLightningModule("BP1", hidden=8, layers=1, mu_transform="softplus", e_transform="sigmoid", lr=1e-2)
+    return ContactLightningModule(
+        "BP1", hidden=8, layers=1, mu_transform="softplus", e_transform="sigmoid", lr=1e-2, schedule="constant"
+    )
 
 
 def test_a_step_with_non_finite_gradients_is_skipped_entirely():

@@ -13,8 +13,9 @@ from diffcontact.data.generate import generate_dataset
 from diffcontact.data.store import load_split
 from diffcontact.errors import ConfigError
 from diffcontact.models import build_model
+from diffcontact.train.config import TrainConfig, resolve_preset, task_training
 from diffcontact.train.module import ContactLightningModule
-from diffcontact.train.run import planned_epochs, resolve_preset, task_training, train_run
+from diffcontact.train.run import planned_epochs, train_run
 from diffcontact.train.summary import learned_summary, slot_contacts
 
 
@@ -62,7 +63,7 @@ def test_resume_continues_to_more_epochs(data_root, tmp_path):
 def test_bad_arguments_are_clear_errors(data_root, tmp_path):
     with pytest.raises(ConfigError, match="model = 'XX' is not one of"):
         train_run("BP1", "XX", epochs=1, out=tmp_path, data_root=data_root)
-    with pytest.raises(ConfigError, match="epochs = 0 is not >= 1"):
+    with pytest.raises(ConfigError, match="epochs = 0 is not an integer >= 1"):
         train_run("BP1", epochs=0, out=tmp_path, data_root=data_root)
     with pytest.raises(ConfigError, match="no checkpoint to resume from"):
         train_run("BP1", epochs=1, out=tmp_path / "fresh", data_root=data_root, resume=True)
@@ -145,7 +146,7 @@ def test_mu_and_e_can_start_from_a_scan_of_the_training_loss(data_root, tmp_path
 
 def test_mu_learns_at_its_own_rate_where_given():
     def rates(**kw):
-        module = ContactLightningModule("BP1", lr=1e-2, coef_lr=0.5, **kw)
+        module = ContactLightningModule("BP1", lr=1e-2, coef_lr=0.5, schedule="constant", **kw)
         module.trainer = None
         return [g["lr"] for g in module.configure_optimizers().param_groups]
 
@@ -254,14 +255,34 @@ def test_summarize_recomputes_learned_json_and_keeps_the_counters(data_root, tmp
 
 
 def test_the_mu_pull_is_checked_and_recorded():
-    from diffcontact.train.run import _check_numbers
-
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ConfigError, match=r"mu_l1 = .* is not a finite number >= 0"):
-            _check_numbers(resolve_preset("default", mu_l1=bad))
-    _check_numbers(resolve_preset("default", mu_l1=0.0))
+            TrainConfig.resolve("BP1", mu_l1=bad)
+    assert TrainConfig.resolve("BP1", mu_l1=0.0).mu_l1 == 0.0
     assert resolve_preset("default", task_training("BD5"))["mu_l1"] == 1e-5
     assert resolve_preset("default")["mu_l1"] == resolve_preset("published")["mu_l1"] == 0.0
+
+
+def test_one_config_holds_every_setting_validated_and_the_module_takes_its_defaults():
+    published = TrainConfig.resolve("BP1", preset="published")  # (every setting, also those the preset leaves alone)
+    assert (published.lr, published.schedule, published.axis_scale, published.min_steps) == (1e-3, "constant", 1.0, 0)
+    assert TrainConfig.from_record(published.record()) == published
+    for bad, match in (
+        (dict(model="CM-XX"), r"model = 'CM-XX' is not one of"),
+        (dict(lr=0.0), r"lr = 0.0 is not a finite number > 0"),
+        (dict(batch_size=0), r"batch_size = 0 is not an integer >= 1"),
+        (dict(schedule="step"), r"schedule = 'step' is not one of \['constant', 'cosine'\]"),
+        (dict(dtype="float16"), r"dtype = 'float16' is not one of"),
+        (dict(model="CM-CD-CLNN", reg=0.1), r"reg = 0.1 is for the regularised models"),
+        (dict(momentum=0.9), r"unknown training settings \['momentum'\]"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            TrainConfig.resolve("BP1", **bad)
+    assert TrainConfig.resolve("BP1", "CMr-CD-CLNN").reg > 0 and TrainConfig.resolve("BP1").reg == 0.0
+    with pytest.raises(ConfigError, match=r"lacks \['lr'\]"):
+        TrainConfig.from_record({k: v for k, v in published.record().items() if k != "lr"})
+    module = ContactLightningModule("BP1")  # (the module's defaults are the default preset's, not its own)
+    assert module.config == TrainConfig("BP1") and (module.config.lr, module.config.schedule) == (1e-2, "cosine")
 
 
 def test_a_baseline_weighs_velocities_whatever_the_tasks_setting_for_the_contact_models(data_root, tmp_path):

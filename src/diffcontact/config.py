@@ -26,7 +26,7 @@ MAX_FRAMES = 1_000_000  # frames of one trajectory (task.frames): 10^4 s at dt =
 _SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
 
 # Tables every task file may hold, with their keys (None: the keys are checked by their reader, here
-# ``diffcontact train`` against its presets, train/run.py: task_training).  A system adds its own tables
+# ``diffcontact train`` against its presets, train/config.py: task_training).  A system adds its own tables
 # (systems/registry.py: register_system).
 COMMON_TABLES: dict[str, tuple[str, ...] | None] = {
     "task": ("name", "system", "dt", "frames", "dtype", "deviations", "substeps"),

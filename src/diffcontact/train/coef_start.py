@@ -15,7 +15,6 @@ import torch
 
 from diffcontact.errors import ConfigError
 
-COEF_STARTS = ("random", "scan")
 MU_GRID = (0.05, 0.15, 0.3, 0.6)
 E_GRID = (0.1, 0.35, 0.6, 0.85)
 SCAN_WINDOWS = 64  # training windows the scan's loss is taken over (at most)

@@ -21,17 +21,15 @@ from collections import Counter
 import lightning.pytorch as pl
 import torch
 
-from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, build_model
 from diffcontact.solver import ContactSolver, Status
 from diffcontact.solver.status import is_failure
 from diffcontact.systems.registry import build_task
+from diffcontact.train.config import TrainConfig
 
 log = logging.getLogger(__name__)
 
-SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
 _FAILED = [s.name for s in Status if is_failure(s)]  # (the statuses counted as solver failures)
-TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
 
 
 class _NoAdvertisement(logging.Filter):
@@ -63,36 +61,12 @@ class ContactLightningModule(pl.LightningModule):
     """Trains ``model`` (one of ``diffcontact.models.MODEL_NAMES``) on the chunks of ``task``, or a baseline
     (``BASELINE_NAMES``) on their one-step pairs (batches of ``PairDataset``)."""
 
-    def __init__(
-        self,
-        task: str,
-        model: str = "CM-CD-CLNN",
-        lr: float = 1e-3,
-        weight_decay: float = 1e-4,
-        mu_transform: str = "projected",
-        e_transform: str = "projected",
-        hidden: int = 256,
-        layers: int = 3,
-        seed: int = 0,
-        dtype: str = "float32",
-        schedule: str = "constant",
-        coef_lr: float = 1.0,
-        mu_coef_lr: float | None = None,
-        mu_l1: float = 0.0,
-        reg: float | None = None,
-        train_loss: str = "l1",
-        potential: str = "mlp",
-        velocity_weight: float = 1.0,
-        moments_init: float = 1.0,
-        axis_scale: float = 1.0,
-    ):
+    def __init__(self, task: str, model: str = "CM-CD-CLNN", **settings):
+        """``settings``: those of :meth:`TrainConfig.module_settings` (the default preset's where not given)."""
         super().__init__()
         quiet_lightning()  # (the module is what brings Lightning in: its notices are quieted wherever it is used)
-        if schedule not in SCHEDULES:
-            raise ConfigError(f"schedule = {schedule!r} is not one of {list(SCHEDULES)}")
-        if train_loss not in TRAIN_LOSSES:
-            raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
-        self.save_hyperparameters()
+        self.config = TrainConfig(task=task, model=model, **settings)
+        self.save_hyperparameters()  # (task, model and the settings given: what load_from_checkpoint passes back)
         self.automatic_optimization = False
         self.task = build_task(task)
         self.solver = ContactSolver(on_failure="count")  # (continues with zero impulses, counts and logs failures)
@@ -101,23 +75,24 @@ class ContactLightningModule(pl.LightningModule):
         self.forward_failures = 0  # (this process's)
         self.seconds_before = 0.0  # (the wall time of a resumed run's earlier sessions, from its checkpoint)
         self._fit_started = time.perf_counter()
+        c = self.config
         net = build_model(
             self.task,
             model,
-            mu_transform=mu_transform,
-            e_transform=e_transform,
-            hidden=hidden,
-            layers=layers,
-            seed=seed,
+            mu_transform=c.mu_transform,
+            e_transform=c.e_transform,
+            hidden=c.hidden,
+            layers=c.layers,
+            seed=c.seed,
             solver=self.solver,
-            reg=reg,
+            reg=c.reg or None,  # (recorded 0 for the exact models: none)
             # (the potential and the moments' start are the contact models' settings: a baseline learns its own)
-            **({} if model in BASELINE_NAMES else {"potential": potential, "moments_init": moments_init}),
+            **({} if model in BASELINE_NAMES else {"potential": c.potential, "moments_init": c.moments_init}),
         )
-        self.net = net.to(getattr(torch, dtype))
+        self.net = net.to(getattr(torch, c.dtype))
         q, n_points = self.task.system.points_per_body, self.task.system.n_points
         axis = (torch.arange(n_points) % q) > 0  # (an extended body's axis points: all but its first)
-        self._point_scale = torch.where(axis, float(axis_scale), 1.0)
+        self._point_scale = torch.where(axis, float(c.axis_scale), 1.0)
         self.baseline = model in BASELINE_NAMES
         self.learns_contacts = self.learned is not None and self.learned.n_slots > 0  # (μ and e)
 
@@ -158,19 +133,19 @@ class ContactLightningModule(pl.LightningModule):
         """Mean absolute (``kind`` "l1") or squared ("mse") error of the predicted chunk: x, v (B, L, P, d); a
         baseline's one-step pair (x0, v0, x1, v1, ...) is the chunk of its two frames.  ``kind`` None: the
         ``train_loss`` in training mode, L1 otherwise (validation)."""
-        kind = kind or (self.hparams.train_loss if self.training else "l1")
+        kind = kind or (self.config.train_loss if self.training else "l1")
         x, v = batch[0], batch[1]
         if self.baseline:
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
         px, pv = self.net(x[:, 0], v[:, 0], x.shape[1])
         err = (lambda r: r.abs()) if kind == "l1" else torch.square
-        w = self.hparams.get("velocity_weight", 1.0)
+        w = self.config.velocity_weight
         scale = self._point_scale.to(x)[:, None]  # (P, 1): 1 at each body's centre, axis_scale at its axis points
         loss = (err(scale * (px - x)).mean() + w * err(scale * (pv - v)).mean()) / (1.0 + w)
-        if self.training and self.hparams.get("mu_l1", 0.0) and self.learns_contacts:
+        if self.training and self.config.mu_l1 and self.learns_contacts:
             # a constant pull of every μ toward 0: where all of a slot's contacts stick the data give μ no gradient
             # (a plateau above the truth), and Adam moves μ down at its full rate until they slide again
-            loss = loss + self.hparams.mu_l1 * self.learned.mu.sum()
+            loss = loss + self.config.mu_l1 * self.learned.mu.sum()
         return loss
 
     def training_step(self, batch, batch_idx: int):
@@ -215,7 +190,7 @@ class ContactLightningModule(pl.LightningModule):
     def on_train_epoch_end(self) -> None:
         # (the values below are the same on every process of a DDP run: sync_dist averages equal values)
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], sync_dist=True)  # (the rate this epoch used)
-        if self.hparams.schedule != "constant":  # (manual optimisation: the schedule is stepped here)
+        if self.config.schedule != "constant":  # (manual optimisation: the schedule is stepped here)
             self.lr_schedulers().step()
         p = self.learned
         if self.learns_contacts:
@@ -242,7 +217,7 @@ class ContactLightningModule(pl.LightningModule):
     def configure_optimizers(self):
         # e (and μ unless mu_coef_lr is given) at coef_lr × lr: Adam moves a parameter about lr per step, whatever
         # its gradient's size
-        p, hp = self.learned, self.hparams
+        p, hp = self.learned, self.config
         mu_coef = hp.coef_lr if hp.mu_coef_lr is None else hp.mu_coef_lr
         coefs = {id(p.mu_raw), id(p.e_raw)} if self.learns_contacts else set()
         groups = [{"params": [t for t in self.net.parameters() if id(t) not in coefs]}]
@@ -251,12 +226,12 @@ class ContactLightningModule(pl.LightningModule):
                 {"params": [p.mu_raw], "lr": hp.lr * mu_coef},
                 {"params": [p.e_raw], "lr": hp.lr * hp.coef_lr},
             ]
-        opt = torch.optim.AdamW(groups, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        opt = torch.optim.AdamW(groups, lr=hp.lr, weight_decay=hp.weight_decay)
         epochs = self.trainer.max_epochs if self._trainer is not None and self.trainer.max_epochs else 1
-        if self.hparams.schedule == "constant":
+        if hp.schedule == "constant":
             return opt
         # cosine from lr to lr/100 over the run's epochs (stepped at each epoch's end)
-        cosine = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=self.hparams.lr / 100)
+        cosine = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs, eta_min=hp.lr / 100)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": cosine, "interval": "epoch"}}
 
     def on_fit_start(self) -> None:

@@ -18,9 +18,10 @@ from diffcontact.files import TMP_PREFIX, atomic_write, save_figure, versions, w
 from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.run_dir import RunDir
-from diffcontact.train.coef_start import COEF_STARTS, scan_coefficients
+from diffcontact.train.coef_start import scan_coefficients
+from diffcontact.train.config import TrainConfig
 from diffcontact.train.datamodule import ContactDataModule
-from diffcontact.train.module import TRAIN_LOSSES, ContactLightningModule, quiet_lightning
+from diffcontact.train.module import ContactLightningModule, quiet_lightning
 from diffcontact.train.summary import learned_summary
 
 
@@ -63,87 +64,11 @@ def plot_losses(csv_dir: Path, out: Path) -> Path | None:
     return out
 
 
-# Training settings by name.  "default": what learns on every task measured (docs/investigations.md, the learning
-# matrix); "published": the paper's (spec E), kept for comparison.
-PRESETS = {
-    "default": dict(
-        epochs=200,
-        lr=1e-2,
-        schedule="cosine",
-        batch_size=50,
-        mu_transform="projected",
-        e_transform="projected",
-        coef_lr=1 / 6,
-        mu_coef_lr=None,
-        mu_l1=0.0,
-        potential="mlp",
-        velocity_weight=1.0,
-        moments_init=1.0,
-        axis_scale=1.0,
-        min_steps=0,
-        coef_start="random",
-    ),
-    "published": dict(
-        epochs=1000,
-        lr=1e-3,
-        schedule="constant",
-        batch_size=200,
-        mu_transform="relu",
-        e_transform="hardsigmoid",
-        coef_lr=1.0,
-        mu_coef_lr=None,
-        mu_l1=0.0,
-        potential="mlp",
-        velocity_weight=1.0,
-        moments_init=1.0,
-        min_steps=0,
-        coef_start="random",
-    ),
-}
-
-
 def planned_epochs(epochs: int, min_steps: int, batches_per_epoch: int) -> int:
     """The epochs a run trains: ``epochs``, or more where that many epochs of ``batches_per_epoch`` optimiser steps
     fall short of ``min_steps`` (a small dataset: 8 real tosses make one batch an epoch).  The learning-rate
     schedule runs over these epochs."""
     return max(epochs, -(-min_steps // max(batches_per_epoch, 1)))
-
-
-def task_training(task: str | Path) -> dict:
-    """The ``[training]`` table of a task file: the settings of the default preset that differ for this task
-    (for example ``mu_coef_lr``), each checked against the preset's known settings and their domains."""
-    table = load_task(task).section("training")
-    known = PRESETS["default"]
-    settings = {}
-    for key in table.data:
-        if key not in known:
-            raise ConfigError(f"training.{key} is not a training setting; known: {list(known)}")
-        if isinstance(known[key], str):  # (its options are checked where it is used)
-            if not isinstance(table.get(key), str):
-                raise ConfigError(f"training.{key} = {table.get(key)!r} is not a string")
-            settings[key] = table.get(key)
-        elif key in ("epochs", "batch_size", "min_steps"):
-            settings[key] = table.integer(key, lo=0 if key == "min_steps" else 1)
-        else:  # (rates > 0; a pull may be 0)
-            settings[key] = table.number(key, lo=0.0, lo_open=key not in ("mu_l1", "velocity_weight"))
-    # (moments_init: the scale in m² per unit mass at which the learned second moments start, about the body's size²;
-    # axis_scale: the weight in the loss of an extended body's axis points against its centre, in m: the body's size
-    # makes an axis point's error the displacement of its surface by a wrong rotation; min_steps: the fewest optimiser
-    # steps a run takes, its epochs raised to reach them on a small dataset: ``planned_epochs``; coef_start: where μ
-    # and e start, "random" or "scan": ``train/coef_start.py``)
-    return settings
-
-
-def resolve_preset(preset: str, task_settings: dict | None = None, **given) -> dict:
-    """The settings of ``preset`` (``PRESETS``), then the task's own (``task_training``; default preset only),
-    each replaced where given (not None)."""
-    if preset not in PRESETS:
-        raise ConfigError(f"preset = {preset!r} is not one of {list(PRESETS)}")
-    unknown = set(given) - set(PRESETS[preset])
-    if unknown:
-        raise ConfigError(f"unknown settings {sorted(unknown)}; known: {list(PRESETS[preset])}")
-    base = {**PRESETS[preset], **(task_settings or {})} if preset == "default" else PRESETS[preset]
-    return {k: v if given.get(k) is None else given[k] for k, v in base.items()}
 
 
 class _RunCheckpoint(pl.callbacks.ModelCheckpoint):
@@ -204,87 +129,50 @@ class _ShuffleState(pl.Callback):
             torch.empty((), dtype=torch.int64).random_(generator=gen)
 
 
-# The settings a run records in config.json ("args") that a resumed run must keep (epochs may grow).
-RUN_SETTINGS = (
-    "task", "model", "preset", "seed", "batch_size", "lr", "schedule", "coef_lr", "mu_coef_lr", "mu_l1", "reg",
-    "weight_decay", "mu_transform", "e_transform", "dtype", "data_root", "train_loss", "devices", "num_nodes",
-    "potential", "velocity_weight", "moments_init", "axis_scale", "min_steps", "coef_start",
-)  # fmt: skip
 ACCELERATORS = ("cpu",)  # (the physics path keeps its constant tensors on the CPU: docs/scaling.md, GPUs)
 
 
-def _resume_settings(run: Path, given: dict, epochs: int | None) -> tuple[dict, int]:
-    """The recorded settings (config.json "args") of the run in ``run``, with ``epochs`` where given, and the
-    epochs it has trained: raises ConfigError if the run has no checkpoint or config, or if a ``given`` setting
-    (not None) differs from the recorded one.  (Whether the epochs planned are fewer than those trained is known
-    only with the data: ``min_steps``.)"""
-    last = RunDir(run).last_checkpoint
-    if not last.is_file() and not RunDir(run).config.is_file():
+def _resumed(run: RunDir, given: dict, epochs: int | None) -> tuple[TrainConfig, int]:
+    """The recorded settings of the run in ``run``, with ``epochs`` where given, and the epochs it has trained:
+    raises ConfigError if the run has no checkpoint or config, or if a ``given`` setting (not None) differs from the
+    recorded one.  (Whether the epochs planned are fewer than those trained is known only with the data:
+    ``min_steps``.)"""
+    last = run.last_checkpoint
+    if not last.is_file() and not run.config.is_file():
         raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
     try:
-        recorded = json.loads(RunDir(run).config.read_text())["args"]
+        recorded = json.loads(run.config.read_text())["args"]
         done, trained = 0, {}  # (a run stopped before its first checkpoint starts again)
         if last.is_file():
             checkpoint = torch.load(last, map_location="cpu", weights_only=False)
             done = int(checkpoint["epoch"]) + 1
             trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
     except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
-        raise ConfigError(f"--resume: {run} is not a readable training run (config.json, {last.name}): {err}") from err
-    recorded.setdefault("train_loss", "l1")  # (runs from before the setting existed trained on L1)
-    recorded.setdefault("devices", 1)  # (and on one process)
-    recorded.setdefault("mu_l1", 0.0)  # (and without a pull on μ)
-    recorded.setdefault("num_nodes", 1)
-    recorded.setdefault("potential", "mlp")  # (and with the MLP potential
-    recorded.setdefault("velocity_weight", 1.0)  # on positions and velocities alike)
-    recorded.setdefault("moments_init", 1.0)
-    recorded.setdefault("axis_scale", 1.0)
-    recorded.setdefault("min_steps", 0)  # (and for the epochs asked for)
-    recorded.setdefault("coef_start", "random")  # (and from a random μ and e)
-    missing = [k for k in (*RUN_SETTINGS, "epochs") if k not in recorded]
-    if missing:
-        raise ConfigError(f"--resume: {run / 'config.json'} lacks {missing} (a run of an older version)")
+        raise ConfigError(
+            f"--resume: {run.path} is not a readable training run ({run.config.name}, {last.name}): {err}"
+        ) from err
+    config = TrainConfig.from_record(recorded, run.config)
     for key, value in trained.items():
-        if value != recorded.get(key):
-            raise ConfigError(f"--resume: {last} is of {key} {value!r}, config.json records {recorded.get(key)!r}")
-    for key in RUN_SETTINGS:
-        value, same = given[key], given[key] == recorded.get(key)
-        if key == "data_root" and value is not None:  # (the same folder, however written)
-            value, same = str(value), Path(value).resolve() == Path(recorded.get(key, "")).resolve()
-        if value is not None and not same:
+        if value != getattr(config, key):
+            raise ConfigError(f"--resume: {last} is of {key} {value!r}, config.json records {getattr(config, key)!r}")
+    for key, value in given.items():
+        if value is None:
+            continue
+        same = value == getattr(config, key)
+        if key == "data_root":  # (the same folder, however written)
+            value, same = str(value), Path(value).resolve() == Path(config.data_root).resolve()
+        if not same:
             raise ConfigError(
-                f"--resume: {key} = {value!r} differs from the run's {recorded.get(key)!r} ({run / 'config.json'}); "
+                f"--resume: {key} = {value!r} differs from the run's {getattr(config, key)!r} ({run.config}); "
                 "leave it out to continue the run as it was, or train into another --out"
             )
-    epochs = recorded["epochs"] if epochs is None else epochs
-    if epochs != recorded["epochs"] and recorded["schedule"] != "constant":
+    epochs = config.epochs if epochs is None else epochs
+    if epochs != config.epochs and config.schedule != "constant":
         raise ConfigError(
-            f"--resume: epochs = {epochs} differs from the run's {recorded['epochs']}, over which its "
-            f"{recorded['schedule']} learning rate schedule is planned (only a constant one can be extended)"
+            f"--resume: epochs = {epochs} differs from the run's {config.epochs}, over which its "
+            f"{config.schedule} learning rate schedule is planned (only a constant one can be extended)"
         )
-    return {**recorded, "epochs": epochs}, done
-
-
-def _check_numbers(settings: dict, **more) -> None:
-    """ConfigError naming the first training setting out of its domain: lr, coef_lr, mu_coef_lr finite > 0;
-    weight_decay, reg, mu_l1 finite >= 0; batch_size an integer >= 1 (None: not given)."""
-    import math
-
-    for key, value in {**settings, **more}.items():
-        if value is None or key not in ("lr", "coef_lr", "mu_coef_lr", "mu_l1", "weight_decay", "reg", "batch_size"):
-            continue
-        if key == "batch_size":
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"batch_size = {value!r} is not an integer >= 1")
-            continue
-        positive = key in ("lr", "coef_lr", "mu_coef_lr")
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, (int, float))
-            or not math.isfinite(value)
-            or value < 0
-            or (positive and value == 0)
-        ):
-            raise ConfigError(f"{key} = {value!r} is not a finite number {'> 0' if positive else '>= 0'}")
+    return config.replace(epochs=epochs), done
 
 
 def _rank(devices: int) -> int:
@@ -325,9 +213,10 @@ def train_run(
     """Train ``model`` (default CM-CD-CLNN) on the generated dataset of ``task`` (in ``data_root``, default
     data/) into ``out`` (default runs/<task>/<model>/seed<seed>, seed 0 by default).
 
-    ``preset`` names the training settings (``PRESETS``, default "default"), which the task file's ``[training]``
-    table adjusts for the default preset; ``epochs``, ``lr``, ``schedule``, ``batch_size``, the transforms and the
-    rates override them where given (weight decay 1e-4 and float32 by default).
+    ``preset`` names the training settings (``train.config.PRESETS``, default "default"), which the task file's
+    ``[training]`` table adjusts for the default preset; ``epochs``, ``lr``, ``schedule``, ``batch_size``, the
+    transforms and the rates override them where given (weight decay 1e-4 and float32 by default): one
+    :class:`~diffcontact.train.config.TrainConfig`, validated once and written to config.json.
     ``train_loss`` ("l1", the paper's and the default, or "mse", a deviation measured for the baselines in
     docs/baselines.md) is the training loss; val/loss, which selects the checkpoint, is always L1.
 
@@ -354,160 +243,71 @@ def train_run(
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
     quiet_lightning()
-    config = load_task(task)  # (a packaged task's name or a task file's path, recorded as found from anywhere)
-    task = config.ref
-    run = (
-        Path(out)
-        if out
-        else Path("runs") / config.name / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}"
-    )
+    given = dict(
+        seed=seed, batch_size=batch_size, lr=lr, schedule=schedule, weight_decay=weight_decay,
+        mu_transform=mu_transform, e_transform=e_transform, coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, mu_l1=mu_l1,
+        reg=reg, train_loss=train_loss, dtype=dtype, data_root=data_root, devices=devices, num_nodes=num_nodes,
+    )  # fmt: skip
+    name = load_task(task).name
+    run = RunDir(out if out else Path("runs") / name / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}")
     first = _rank(devices or 1) == 0  # (the process that writes: the only one before a DDP launch)
-    with output_lock(run) if first else nullcontext():  # (one command at a time writes a run)
-        ckpt_dir = RunDir(run).checkpoints
-        last = RunDir(run).last_checkpoint
+    with output_lock(run.path) if first else nullcontext():  # (one command at a time writes a run)
         done = 0  # (epochs trained before: a resumed run's)
         if resume:
-            given = dict(
-                task=task, model=model, preset=preset, seed=seed, batch_size=batch_size, lr=lr, schedule=schedule,
-                coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, mu_l1=mu_l1, reg=reg, weight_decay=weight_decay,
-                mu_transform=mu_transform,
-                e_transform=e_transform, dtype=dtype, data_root=data_root, train_loss=train_loss, devices=devices,
-                num_nodes=num_nodes, potential=None, velocity_weight=None, moments_init=None,
-                axis_scale=None, min_steps=None, coef_start=None,
-            )  # fmt: skip
-            args, done = _resume_settings(run, given, epochs)
+            ref = load_task(task).ref
+            config, done = _resumed(run, dict(task=ref, model=model, preset=preset, **given), epochs)
         else:
-            if ckpt_dir.is_dir() and any(ckpt_dir.glob("*.ckpt")):
+            if run.checkpoints.is_dir() and any(run.checkpoints.glob("*.ckpt")):
                 raise ConfigError(
-                    f"{ckpt_dir} already holds the checkpoints of a run: continue it with --resume, or train into "
-                    "another --out (or delete that run)"
+                    f"{run.checkpoints} already holds the checkpoints of a run: continue it with --resume, or train "
+                    "into another --out (or delete that run)"
                 )
-            model, preset = model or "CM-CD-CLNN", preset or "default"
-            if model not in MODEL_NAMES and model not in BASELINE_NAMES:
-                raise ConfigError(f"model = {model!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
-            if train_loss not in (None, *TRAIN_LOSSES):
-                raise ConfigError(f"train_loss = {train_loss!r} is not one of {list(TRAIN_LOSSES)}")
-            own = task_training(task)
-            settings = resolve_preset(
-                preset,
-                own,
-                epochs=epochs,
-                lr=lr,
-                schedule=schedule,
-                batch_size=batch_size,
-                mu_transform=mu_transform,
-                e_transform=e_transform,
-                coef_lr=coef_lr,
-                mu_coef_lr=mu_coef_lr,
-                mu_l1=mu_l1,
-            )
-            if settings["epochs"] < 1:
-                raise ConfigError(f"epochs = {settings['epochs']} is not >= 1")
-            if settings["coef_start"] not in COEF_STARTS:
-                raise ConfigError(f"coef_start = {settings['coef_start']!r} is not one of {list(COEF_STARTS)}")
-            _check_numbers(settings, weight_decay=weight_decay, reg=reg)
-            args = dict(
-                task=task,
-                model=model,
-                preset=preset,
-                epochs=settings["epochs"],
-                seed=0 if seed is None else seed,
-                batch_size=settings["batch_size"],
-                lr=settings["lr"],
-                schedule=settings["schedule"],
-                coef_lr=settings["coef_lr"],
-                mu_coef_lr=settings["mu_coef_lr"],
-                mu_l1=settings["mu_l1"],
-                potential=settings["potential"],
-                # (a baseline's one-step pair weighs velocities as the paper's loss does, whatever the task's setting
-                # for the contact models' windows: the velocity jump moves no position within its step, so without
-                # them it would get no gradient at all)
-                velocity_weight=settings["velocity_weight"] if model in MODEL_NAMES else 1.0,
-                moments_init=settings["moments_init"],
-                axis_scale=settings["axis_scale"],
-                min_steps=settings["min_steps"],
-                coef_start=settings["coef_start"],
-                reg=MODEL_NAMES[model][1] if reg is None and model in MODEL_NAMES else reg,
-                weight_decay=1e-4 if weight_decay is None else weight_decay,
-                train_loss=train_loss or "l1",
-                mu_transform=settings["mu_transform"],
-                e_transform=settings["e_transform"],
-                dtype=dtype or "float32",
-                data_root=str("data" if data_root is None else data_root),
-                task_training=own if preset == "default" else {},  # (the task file's [training] table, applied above)
-                devices=devices or 1,
-                num_nodes=num_nodes or 1,
-            )
-        processes = args["devices"] * args["num_nodes"]
+            config = TrainConfig.resolve(task, model, preset, epochs=epochs, **given)
+        processes = config.devices * config.num_nodes
         parallel = dict(
             processes=processes,
             accelerator=accelerator,
             strategy="ddp" if processes > 1 else "single process",
-            batch_per_process=args["batch_size"],
-            effective_batch=args["batch_size"] * processes,
-            lr=args["lr"],
+            batch_per_process=config.batch_size,
+            effective_batch=config.batch_size * processes,
+            lr=config.lr,
             lr_scaling="none (the learning rate is not scaled with the effective batch)",
         )
         data = ContactDataModule(
-            args["task"],
-            root=args["data_root"],
-            batch_size=args["batch_size"],
-            mode="pairs" if args["model"] in BASELINE_NAMES else "chunks",  # (the baselines train on one-step pairs)
-            dtype=getattr(torch, args["dtype"]),
-            seed=args["seed"],
+            config.task,
+            root=config.data_root,
+            batch_size=config.batch_size,
+            mode="pairs" if config.model in BASELINE_NAMES else "chunks",  # (the baselines train on one-step pairs)
+            dtype=getattr(torch, config.dtype),
+            seed=config.seed,
         )
-        max_epochs = planned_epochs(args["epochs"], args["min_steps"], data.batches_per_epoch(processes))
+        max_epochs = planned_epochs(config.epochs, config.min_steps, data.batches_per_epoch(processes))
         if resume and max_epochs < done:
             raise ConfigError(
-                f"--resume: epochs = {args['epochs']} (planned: {max_epochs}) is fewer than the {done} epochs the run "
+                f"--resume: epochs = {config.epochs} (planned: {max_epochs}) is fewer than the {done} epochs the run "
                 "has trained"
             )
         if first:
-            run.mkdir(parents=True, exist_ok=True)
+            run.path.mkdir(parents=True, exist_ok=True)
             write_json(
-                RunDir(run).config,
-                {"args": args, "versions": versions(lightning=pl.__version__), "parallel": parallel},
+                run.config,
+                {"args": config.record(), "versions": versions(lightning=pl.__version__), "parallel": parallel},
             )
         pl.utilities.rank_zero_info(
-            f"training on {processes} process(es) ({args['devices']} device(s) x {args['num_nodes']} node(s), "
-            f"{accelerator}): batch {args['batch_size']} per process, effective batch {parallel['effective_batch']}, "
-            f"learning rate {args['lr']:g} (not scaled)"
+            f"training on {processes} process(es) ({config.devices} device(s) x {config.num_nodes} node(s), "
+            f"{accelerator}): batch {config.batch_size} per process, effective batch {parallel['effective_batch']}, "
+            f"learning rate {config.lr:g} (not scaled)"
         )
-        task, model, seed, dtype = args["task"], args["model"], args["seed"], args["dtype"]
 
         started = time.perf_counter()
-        pl.seed_everything(seed, workers=True)
-        module = ContactLightningModule(
-            task,
-            model,
-            seed=seed,
-            dtype=dtype,
-            reg=args["reg"] if model in MODEL_NAMES and MODEL_NAMES[model][1] else None,  # (CM models, baselines: none)
-            train_loss=args["train_loss"],
-            **{
-                k: args[k]
-                for k in (
-                    "lr",
-                    "weight_decay",
-                    "mu_transform",
-                    "e_transform",
-                    "schedule",
-                    "coef_lr",
-                    "mu_coef_lr",
-                    "mu_l1",
-                    "potential",
-                    "velocity_weight",
-                    "moments_init",
-                    "axis_scale",
-                )
-            },
-        )
+        pl.seed_everything(config.seed, workers=True)
+        module = ContactLightningModule(**config.module_settings())
         loggers = [
-            pl.loggers.CSVLogger(run / "logs", name="csv"),
-            pl.loggers.TensorBoardLogger(run / "logs", name="tb"),
+            pl.loggers.CSVLogger(run.path / "logs", name="csv"),
+            pl.loggers.TensorBoardLogger(run.path / "logs", name="tb"),
         ]
         checkpoints = _RunCheckpoint(
-            dirpath=ckpt_dir,
+            dirpath=run.checkpoints,
             filename="best-{epoch}",
             monitor="val/loss",
             mode="min",
@@ -516,14 +316,14 @@ def train_run(
             every_n_epochs=1,
             enable_version_counter=False,  # (one last.ckpt, always the newest)
         )
-        for tmp in ckpt_dir.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
+        for tmp in run.checkpoints.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
             tmp.unlink(missing_ok=True)
-        start = last if resume and last.is_file() else None
+        start = run.last_checkpoint if resume and run.last_checkpoint.is_file() else None
         trainer = pl.Trainer(
             max_epochs=max_epochs,
             # (epochs raised for a small dataset validate as often as the epochs asked for would: the validation
             # split is not smaller, and validating it every epoch of 8 tosses cost 5 times the training)
-            check_val_every_n_epoch=max(1, max_epochs // args["epochs"]),
+            check_val_every_n_epoch=max(1, max_epochs // config.epochs),
             plugins=[_AtomicCheckpointIO()],
             logger=loggers,
             callbacks=[checkpoints, _ShuffleState()],
@@ -533,15 +333,15 @@ def train_run(
             enable_model_summary=False,
             num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
             accelerator=accelerator,
-            devices=args["devices"],
-            num_nodes=args["num_nodes"],
+            devices=config.devices,
+            num_nodes=config.num_nodes,
             strategy=pl.strategies.DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
         )
-        scan = RunDir(run).coef_start
-        if start is None and args["coef_start"] == "scan" and model in MODEL_NAMES:
+        scan = run.coef_start
+        if start is None and config.coef_start == "scan" and config.model in MODEL_NAMES:
             data.setup()
             train = data.splits["train"]
-            record = scan_coefficients(module, train.chunk_x, train.chunk_v, seed)
+            record = scan_coefficients(module, train.chunk_x, train.chunk_v, config.seed)
             pl.utilities.rank_zero_info(f"μ and e start at {record['chosen']} (the least loss of a scan)")
             if first:
                 write_json(scan, record)
@@ -566,10 +366,10 @@ def train_run(
         summary["processes"] = processes
         summary["rank"] = trainer.global_rank  # (0: the process that wrote the files)
         summary["wall_time_s"] = module.seconds_before + time.perf_counter() - started  # (over all sessions)
-        summary["run_dir"] = str(run)
+        summary["run_dir"] = str(run.path)
         if trainer.is_global_zero:
-            write_json(RunDir(run).learned, summary)
-            plot_losses(run / "logs" / "csv", run / "loss.png")
+            write_json(run.learned, summary)
+            plot_losses(run.path / "logs" / "csv", run.path / "loss.png")
         return summary
 
 
