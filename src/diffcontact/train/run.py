@@ -252,27 +252,7 @@ def train_run(
     run = RunDir(out if out else Path("runs") / name / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}")
     first = _rank(devices or 1) == 0  # (the process that writes: the only one before a DDP launch)
     with output_lock(run.path) if first else nullcontext():  # (one command at a time writes a run)
-        done = 0  # (epochs trained before: a resumed run's)
-        if resume:
-            ref = load_task(task).ref
-            config, done = _resumed(run, dict(task=ref, model=model, preset=preset, **given), epochs)
-        else:
-            if run.checkpoints.is_dir() and any(run.checkpoints.glob("*.ckpt")):
-                raise ConfigError(
-                    f"{run.checkpoints} already holds the checkpoints of a run: continue it with --resume, or train "
-                    "into another --out (or delete that run)"
-                )
-            config = TrainConfig.resolve(task, model, preset, epochs=epochs, **given)
-        processes = config.devices * config.num_nodes
-        parallel = dict(
-            processes=processes,
-            accelerator=accelerator,
-            strategy="ddp" if processes > 1 else "single process",
-            batch_per_process=config.batch_size,
-            effective_batch=config.batch_size * processes,
-            lr=config.lr,
-            lr_scaling="none (the learning rate is not scaled with the effective batch)",
-        )
+        config, done = _settings(run, task, model, preset, epochs, given, resume)
         data = ContactDataModule(
             config.task,
             root=config.data_root,
@@ -281,96 +261,144 @@ def train_run(
             dtype=getattr(torch, config.dtype),
             seed=config.seed,
         )
+        processes = config.devices * config.num_nodes
         max_epochs = planned_epochs(config.epochs, config.min_steps, data.batches_per_epoch(processes))
         if resume and max_epochs < done:
             raise ConfigError(
                 f"--resume: epochs = {config.epochs} (planned: {max_epochs}) is fewer than the {done} epochs the run "
                 "has trained"
             )
-        if first:
-            run.path.mkdir(parents=True, exist_ok=True)
-            write_json(
-                run.config,
-                {"args": config.record(), "versions": versions(lightning=pl.__version__), "parallel": parallel},
-            )
-        pl.utilities.rank_zero_info(
-            f"training on {processes} process(es) ({config.devices} device(s) x {config.num_nodes} node(s), "
-            f"{accelerator}): batch {config.batch_size} per process, effective batch {parallel['effective_batch']}, "
-            f"learning rate {config.lr:g} (not scaled)"
-        )
-
+        _record(run, config, accelerator, first)
         started = time.perf_counter()
         pl.seed_everything(config.seed, workers=True)
         module = ContactLightningModule(**config.module_settings())
-        loggers = [
-            pl.loggers.CSVLogger(run.path / "logs", name="csv"),
-            pl.loggers.TensorBoardLogger(run.path / "logs", name="tb"),
-        ]
-        checkpoints = _RunCheckpoint(
-            dirpath=run.checkpoints,
-            filename="best-{epoch}",
-            monitor="val/loss",
-            mode="min",
-            save_top_k=1,
-            save_last=True,
-            every_n_epochs=1,
-            enable_version_counter=False,  # (one last.ckpt, always the newest)
-        )
-        for tmp in run.checkpoints.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
-            tmp.unlink(missing_ok=True)
         start = run.last_checkpoint if resume and run.last_checkpoint.is_file() else None
-        trainer = pl.Trainer(
-            max_epochs=max_epochs,
-            # (epochs raised for a small dataset validate as often as the epochs asked for would: the validation
-            # split is not smaller, and validating it every epoch of 8 tosses cost 5 times the training)
-            check_val_every_n_epoch=max(1, max_epochs // config.epochs),
-            plugins=[_AtomicCheckpointIO()],
-            logger=loggers,
-            callbacks=[checkpoints, _ShuffleState()],
-            enable_progress_bar=progress,
-            deterministic=True,
-            log_every_n_steps=1,
-            enable_model_summary=False,
-            num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
-            accelerator=accelerator,
-            devices=config.devices,
-            num_nodes=config.num_nodes,
-            strategy=pl.strategies.DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
-        )
-        scan = run.coef_start
+        trainer, checkpoints = _trainer(run, config, max_epochs, start, progress, accelerator, first)
         if start is None and config.coef_start == "scan" and config.model in MODEL_NAMES:
-            data.setup()
-            train = data.splits["train"]
-            record = scan_coefficients(module, train.chunk_x, train.chunk_v, config.seed)
-            pl.utilities.rank_zero_info(f"μ and e start at {record['chosen']} (the least loss of a scan)")
-            if first:
-                write_json(scan, record)
+            _scan_start(module, data, config, run, first)
         trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
         totals = module.totals()  # (summed over the processes: every process calls it)
         best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
         if trainer.world_size > 1:
             best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
         chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
-        # the parameters of the checkpoint chosen on the validation split, and what the training data can identify
-        train = data.splits["train"]
-        summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
-        request = load_meta(data.folder)["request"]
-        if request.get("measured"):  # (the table's height is the importer's estimate, not learned)
-            summary["table_height_m"] = {"value": request["table_height_m"], "how": request["table_height_method"]}
-        if scan.is_file():  # (where μ and e started)
-            summary["coef_start"] = json.loads(scan.read_text())["chosen"]
-        summary["best_checkpoint"] = best
-        summary["epochs_trained"] = int(trainer.current_epoch)
-        summary["optimiser_steps"] = int(trainer.global_step)
-        summary.update(totals)
-        summary["processes"] = processes
-        summary["rank"] = trainer.global_rank  # (0: the process that wrote the files)
+        summary = _summary(chosen, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
         summary["wall_time_s"] = module.seconds_before + time.perf_counter() - started  # (over all sessions)
         summary["run_dir"] = str(run.path)
         if trainer.is_global_zero:
             write_json(run.learned, summary)
             plot_losses(run.path / "logs" / "csv", run.path / "loss.png")
         return summary
+
+
+def _settings(
+    run: RunDir, task, model, preset, epochs: int | None, given: dict, resume: bool
+) -> tuple[TrainConfig, int]:
+    """The run's settings and the epochs it has trained: a new run's, resolved (refused beside another run's
+    checkpoints), or a resumed run's, as recorded."""
+    if resume:
+        return _resumed(run, dict(task=load_task(task).ref, model=model, preset=preset, **given), epochs)
+    if run.checkpoints.is_dir() and any(run.checkpoints.glob("*.ckpt")):
+        raise ConfigError(
+            f"{run.checkpoints} already holds the checkpoints of a run: continue it with --resume, or train into "
+            "another --out (or delete that run)"
+        )
+    return TrainConfig.resolve(task, model, preset, epochs=epochs, **given), 0
+
+
+def _record(run: RunDir, config: TrainConfig, accelerator: str, first: bool) -> None:
+    """Write config.json (the settings, the versions and how the processes share the work) and say it."""
+    processes = config.devices * config.num_nodes
+    parallel = dict(
+        processes=processes,
+        accelerator=accelerator,
+        strategy="ddp" if processes > 1 else "single process",
+        batch_per_process=config.batch_size,
+        effective_batch=config.batch_size * processes,
+        lr=config.lr,
+        lr_scaling="none (the learning rate is not scaled with the effective batch)",
+    )
+    if first:
+        run.path.mkdir(parents=True, exist_ok=True)
+        record = {"args": config.record(), "versions": versions(lightning=pl.__version__), "parallel": parallel}
+        write_json(run.config, record)
+    pl.utilities.rank_zero_info(
+        f"training on {processes} process(es) ({config.devices} device(s) x {config.num_nodes} node(s), "
+        f"{accelerator}): batch {config.batch_size} per process, effective batch {parallel['effective_batch']}, "
+        f"learning rate {config.lr:g} (not scaled)"
+    )
+
+
+def _trainer(
+    run: RunDir, config: TrainConfig, max_epochs: int, start: Path | None, progress: bool, accelerator: str, first: bool
+) -> tuple[pl.Trainer, _RunCheckpoint]:
+    """The run's Lightning trainer (logs, atomic checkpoints every epoch, the best on val/loss) and its checkpoint
+    callback."""
+    loggers = [
+        pl.loggers.CSVLogger(run.path / "logs", name="csv"),
+        pl.loggers.TensorBoardLogger(run.path / "logs", name="tb"),
+    ]
+    checkpoints = _RunCheckpoint(
+        dirpath=run.checkpoints,
+        filename="best-{epoch}",
+        monitor="val/loss",
+        mode="min",
+        save_top_k=1,
+        save_last=True,
+        every_n_epochs=1,
+        enable_version_counter=False,  # (one last.ckpt, always the newest)
+    )
+    for tmp in run.checkpoints.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
+        tmp.unlink(missing_ok=True)
+    processes = config.devices * config.num_nodes
+    trainer = pl.Trainer(
+        max_epochs=max_epochs,
+        # (epochs raised for a small dataset validate as often as the epochs asked for would: the validation
+        # split is not smaller, and validating it every epoch of 8 tosses cost 5 times the training)
+        check_val_every_n_epoch=max(1, max_epochs // config.epochs),
+        plugins=[_AtomicCheckpointIO()],
+        logger=loggers,
+        callbacks=[checkpoints, _ShuffleState()],
+        enable_progress_bar=progress,
+        deterministic=True,
+        log_every_n_steps=1,
+        enable_model_summary=False,
+        num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
+        accelerator=accelerator,
+        devices=config.devices,
+        num_nodes=config.num_nodes,
+        strategy=pl.strategies.DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
+    )
+    return trainer, checkpoints
+
+
+def _scan_start(module: ContactLightningModule, data: ContactDataModule, config: TrainConfig, run: RunDir, first):
+    """Start μ and e from the least training loss of a scan (train/coef_start.py), recorded in coef_start.json."""
+    data.setup()
+    train = data.splits["train"]
+    record = scan_coefficients(module, train.chunk_x, train.chunk_v, config.seed)
+    pl.utilities.rank_zero_info(f"μ and e start at {record['chosen']} (the least loss of a scan)")
+    if first:
+        write_json(run.coef_start, record)
+
+
+def _summary(chosen: ContactLightningModule, data: ContactDataModule, run: RunDir) -> dict:
+    """What the checkpoint chosen on the validation split learned, and what the training data can identify; a
+    measured dataset's table height; where μ and e started."""
+    train = data.splits["train"]
+    summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
+    request = load_meta(data.folder)["request"]
+    if request.get("measured"):  # (the table's height is the importer's estimate, not learned)
+        summary["table_height_m"] = {"value": request["table_height_m"], "how": request["table_height_method"]}
+    if run.coef_start.is_file():
+        summary["coef_start"] = json.loads(run.coef_start.read_text())["chosen"]
+    return summary
+
+
+def _counters(trainer: pl.Trainer, totals: dict, processes: int) -> dict:
+    """The run's epochs, steps and failure counters (summed over its processes), and who wrote the files."""
+    counters = {"epochs_trained": int(trainer.current_epoch), "optimiser_steps": int(trainer.global_step)}
+    return counters | totals | {"processes": processes, "rank": trainer.global_rank}  # (rank 0 wrote the files)
 
 
 def summarize_run(run: str | Path) -> dict:
