@@ -84,3 +84,29 @@ def test_contact_solver_passes_its_options_and_rejects_an_unknown_policy():
     }
     with pytest.raises(ValueError, match=r"on_failure must be one of \['raise', 'count'\], got 'ignore'"):
         ContactSolver(on_failure="ignore")
+
+
+def test_every_threshold_is_the_policys_and_docs_solver_md_lists_them_all():
+    import re
+    from pathlib import Path
+
+    from diffcontact.solver import contact_solver, flat, optimality, problem, scaling, status
+    from diffcontact.solver.policy import POLICY
+
+    bound = {
+        (problem, "IPM_TOL"): "ipm_tol", (problem, "ROUNDING_TOL"): "rounding_tol", (problem, "POLISH_STEPS"):
+        "polish_steps", (problem, "START_MARGIN"): "start_margin", (problem, "ROBUST_MARGIN"): "robust_margin",
+        (problem, "FAR"): "far", (problem, "TIKHONOV"): "tikhonov", (problem, "MU_CAP"): "mu_cap",
+        (problem, "MU_MAX"): "mu_max", (flat, "Q_TOL"): "q_tol", (flat, "UNIQUE_TOL"): "unique_tol",
+        (flat, "RHO"): "alm_rho", (flat, "RHO_MAX"): "alm_rho_max", (flat, "ALM_STEPS"): "alm_steps",
+        (flat, "ALM_TOL"): "alm_tol", (flat, "ALM_ACCEPT"): "alm_accept", (flat, "ALM_FLOOR"): "alm_floor",
+        (flat, "ALM_FAR"): "alm_far", (flat, "V_ROUNDING"): "v_rounding", (flat, "PROX"): "prox",
+        (optimality, "MU_CHECKED"): "mu_checked", (scaling, "MU_FREE"): "mu_free", (status, "WEAK_TOL"): "weak_tol",
+    }  # fmt: skip
+    for (module, name), field in bound.items():
+        assert getattr(module, name) == getattr(POLICY, field), name
+    defaults = contact_solver.ContactSolver()
+    assert (defaults.tol, defaults.acceptable_tol, defaults.max_iter) == (POLICY.tol, POLICY.acceptable_tol, 60)
+    docs = (Path(__file__).parents[1] / "docs" / "solver.md").read_text()
+    listed = dict(re.findall(r"^\| `(\w+)` \| ([^|]+) \|", docs, flags=re.M))
+    assert listed == {name: f"{value:g}" for name, value in POLICY.table()}

@@ -15,6 +15,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from diffcontact.solver.policy import POLICY
 from diffcontact.solver.problem import solve_cone_qp
 from diffcontact.solver.status import Status, is_failure
 
@@ -35,9 +36,9 @@ class ContactSolver:
     Counters: ``calls`` (batches solved), ``counts`` (problems by :class:`Status`, all codes).
     """
 
-    tol: float = 1e-10
-    acceptable_tol: float = 1e-7
-    max_iter: int = 60
+    tol: float = POLICY.tol
+    acceptable_tol: float = POLICY.acceptable_tol
+    max_iter: int = POLICY.max_iter
     on_failure: Literal["raise", "count"] = "raise"
     backend: Callable = field(default=solve_cone_qp, repr=False)
     calls: int = field(default=0, init=False)

@@ -52,28 +52,25 @@ import torch
 
 from diffcontact.errors import IndefiniteMatrixError
 from diffcontact.solver import lanes
+from diffcontact.solver.policy import POLICY
 from diffcontact.solver.status import Status, is_failure
 
-Q_TOL = 0.1  # ... up to this, drift of the constraint velocities, dropped where a flat direction enters the cones
-# a set of minimisers narrower than this (relative) is a point (along a line tangent to a cone, rounding alone
-# opens a gap of ~1e-8)
-UNIQUE_TOL = 1e-6
+# (thresholds and their reasons: ``solver/policy.py``)
+Q_TOL, UNIQUE_TOL = POLICY.q_tol, POLICY.unique_tol
 # the augmented Lagrangian stage (several flat directions): penalty relative to the unit Hessian, steps, tolerance
-RHO, RHO_MAX = 1e4, 1e5
-ALM_STEPS = 20
-ALM_TOL = 1e-13  # relative miss of the equality at convergence
-ALM_ACCEPT = 1e-9  # ... below which an iterate counts as a minimiser
+RHO, RHO_MAX = POLICY.alm_rho, POLICY.alm_rho_max
+ALM_STEPS, ALM_TOL, ALM_ACCEPT = POLICY.alm_steps, POLICY.alm_tol, POLICY.alm_accept
 # an iterate that stalls ALM_FAR times farther from its start than its relative miss is not at a point (there the
 # iterates creep towards the start: 6–200 times their miss in the solver's accuracy tests); it steps on until its
 # miss is below ALM_FLOOR (the inner solves' accuracy at RHO_MAX: measured up to 2e-7), then a proximal step
 # (PROX, below) makes it a minimiser
-ALM_FLOOR, ALM_FAR = 1e-7, 1e4
+ALM_FLOOR, ALM_FAR = POLICY.alm_floor, POLICY.alm_far
 # parts of a unit flat direction up to this are the eigensolver's rounding (≈ eps·ref / gap ≤ eps / τ ≈ 2e-10:
 # the eigenvalues that are not flat lie above τ·ref)
-V_ROUNDING = 1e-9
+V_ROUNDING = POLICY.v_rounding
 # the proximal step that finishes a stalled least-norm stage: curvature relative to ref (its pull adds ≈ PROX times
 # the iterate's miss to the residual)
-PROX = 1e-10
+PROX = POLICY.prox
 
 
 @functools.cache

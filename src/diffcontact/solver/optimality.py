@@ -20,11 +20,13 @@ import math
 import numpy as np
 from numba import njit
 
+from diffcontact.solver.policy import POLICY
+
 #: Friction coefficients above which an answer is also checked by its natural residual (``_solve_with_retries``):
 #: below it the scaled test is accurate (worst natural residual of a usable answer 6e-11 at μ ≤ 10 measured on
 #: 10,800 random problems, docs/scaling.md), and problems with μ ≤ 10 (every benchmark task) pay nothing for it.
 #: Also every answer of the retry that rescales γ by the size of a stalled iterate, whatever μ.
-MU_CHECKED = 10.0
+MU_CHECKED = POLICY.mu_checked
 
 
 def natural_residual(A, q, mu, lower, active, f, d: int, rows):

@@ -24,17 +24,13 @@ from diffcontact.errors import ContactSolverError
 from diffcontact.solver import flat, lanes, optimality, scaling
 from diffcontact.solver.exact import contact_dims
 from diffcontact.solver.implicit import ImplicitConeQP, ScaledSolution
+from diffcontact.solver.policy import POLICY
 from diffcontact.solver.status import Status, is_failure
 
-# The retry policy (``_solve_with_retries``).
-IPM_TOL = 1e-5  # the interior-point method's target before polishing (measured fastest in 1e-8 … 1e-3)
-ROUNDING_TOL = 1e-13  # polishing reached rounding level: converged without a pass of the method to ``tol``
-POLISH_STEPS = 3  # factorisations per polishing pass
-START_MARGIN = 0.1  # how far inside the cones the first start lies: measured over 0.001 … 3, K = 1 … 19, d = 2, 3
-ROBUST_MARGIN = 1.0  # CVXOPT's, the start of the retries: slower on average, more robust
-FAR = 1e3  # a minimiser of a flat problem farther than this × its range part is solved again (``_near_least_norm``)
-TIKHONOV = 1e-12  # ... with this curvature (relative) on its flat directions
-MU_CAP = 1e4  # the last attempt: failed elements with a larger μ solved with μ capped at this (measured 1e3 … 1e5)
+# The retry policy (``_solve_with_retries``): thresholds and their reasons in ``solver/policy.py``.
+IPM_TOL, ROUNDING_TOL, POLISH_STEPS = POLICY.ipm_tol, POLICY.rounding_tol, POLICY.polish_steps
+START_MARGIN, ROBUST_MARGIN = POLICY.start_margin, POLICY.robust_margin
+FAR, TIKHONOV, MU_CAP = POLICY.far, POLICY.tikhonov, POLICY.mu_cap
 # (plain ints: an IntEnum member costs a µs per access in Python 3.11)
 _CONVERGED, _INACCURATE, _MAX_ITER = int(Status.CONVERGED), int(Status.INACCURATE), int(Status.MAX_ITER)
 assert _CONVERGED == 0  # (``not np.count_nonzero(status)``: all converged)
@@ -63,9 +59,9 @@ class SolverInfo:
         return int(self.failed.sum())
 
 
-#: The largest friction coefficient accepted: far beyond sticking (μ = 1e6 sticks wherever f_n > 0), and far below
-#: the μ (about 1e160) at which the scaled problem overflows and a failed element would come back as NaN.
-MU_MAX = 1e100
+#: The largest friction coefficient accepted (``POLICY.mu_max``): far beyond sticking (μ = 1e6 sticks wherever
+#: f_n > 0), and far below the μ (about 1e160) at which the scaled problem overflows.
+MU_MAX = POLICY.mu_max
 
 
 def check_problem(A, q, mu, lower=None, active=None):
@@ -188,9 +184,9 @@ def solve_cone_qp(
     lower: torch.Tensor | None = None,
     active: torch.Tensor | None = None,
     *,
-    tol: float = 1e-10,
-    acceptable_tol: float = 1e-7,
-    max_iter: int = 60,
+    tol: float = POLICY.tol,
+    acceptable_tol: float = POLICY.acceptable_tol,
+    max_iter: int = POLICY.max_iter,
     on_failure: Literal["raise", "count"] = "raise",
     return_info: bool = False,
 ):

@@ -32,11 +32,12 @@ import numpy as np
 from numba import njit
 
 from diffcontact.solver import lanes
+from diffcontact.solver.policy import POLICY
 
 #: Friction coefficients from which a contact is solved free first, and again scaled for sliding where its answer
 #: leaves the cone (module docstring).  Measured: at 1e6 gradients at μ 1e4 … 1e6 were wrong by up to 3e-5 relative
 #: (2e-9 at 1e4); problems with μ < 1e4 are scaled as before.
-MU_FREE = 1e4
+MU_FREE = POLICY.mu_free
 _NONE_SLIDING = np.zeros((0, 0), dtype=np.bool_)  # (no contact scaled for sliding: nothing allocated)
 
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from enum import IntEnum
 
+from diffcontact.solver.policy import POLICY
+
 
 class Status(IntEnum):
     """Per-element solver status."""
@@ -24,7 +26,7 @@ FIRST_FAILURE = Status.MAX_ITER
 
 #: A ray or cone whose multiplier is at most WEAK_TOL·max(1, ‖slack‖) is weakly active (a contact exactly at a
 #: stick/slip or touch/separate switch): polishing and the backward pass may take it as inactive.
-WEAK_TOL = 1e-6
+WEAK_TOL = POLICY.weak_tol
 
 
 _FIRST_FAILURE = int(FIRST_FAILURE)  # (numpy compares with an IntEnum member 20× slower than with an int)
