@@ -1,4 +1,4 @@
-"""The catalogue of bad inputs (issue 19): each ends in one clear line (no traceback) and exit code 2 on the command
+"""The catalogue of bad inputs: each ends in one clear line (no traceback) and exit code 2 on the command
 line, or a named exception from the library; nothing half-written is left behind."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Control through contacts (issue 18): the objectives' gradients against finite differences (float64), and each
+"""Control through contacts: the objectives' gradients against finite differences (float64), and each
 control example lowering its loss by >= 90 % on a short run (reduced billiards table, the BD1 throws)."""
 
 from __future__ import annotations

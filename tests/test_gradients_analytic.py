@@ -1,4 +1,4 @@
-"""Gradients through impacts against closed forms (float64, issue 15): two balls of different masses (head-on and
+"""Gradients through impacts against closed forms (float64): two balls of different masses (head-on and
 at an angle), a ball bouncing under gravity with e < 1 (apex after n bounces), a spinning disk hitting the ground
 with friction (sticking and sliding).
 
@@ -23,7 +23,7 @@ from diffcontact.systems import build_task
 from diffcontact.systems.bouncing import disk_points
 
 F64 = torch.float64
-STATE_TOL = 1e-6  # issue 15: final state within 1e-6 of the closed form with TOI
+STATE_TOL = 1e-6  # final state within 1e-6 of the closed form with TOI
 GRAD_TOL = 1e-4  # and its gradient within 1e-4
 G = 9.81
 DTS = [0.01, 0.007]

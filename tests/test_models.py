@@ -9,7 +9,7 @@ import diffcontact as dc
 from diffcontact.errors import ConfigError
 from diffcontact.models import MODEL_NAMES, build_model
 
-TOL_RECOVERED = 0.05  # issue 5: a tiny run on a one-ball task recovers e and μ to within 0.05
+TOL_RECOVERED = 0.05  # a tiny run on a one-ball task recovers e and μ to within 0.05
 
 
 def _colliding_chunks(task, n_traj: int, seed: int, frames: int = 5):

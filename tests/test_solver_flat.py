@@ -273,7 +273,7 @@ def test_stalled_least_norm_stage_ends_at_the_minimum_norm_minimiser(seed, K, b,
     """Elements of degenerate batches (tests/test_solver_robustness.py; d = 2; K = 4 with two flat directions, K = 19
     with 16 and 12) where the least-norm stage's augmented Lagrangian stalled at its inner solves' accuracy: the
     answer is a minimiser with the norm of the two-stage Clarabel reference.  It used to be the stage's start (6–23×
-    larger in norm, status 0); then, in session 9, the last iterate where its miss was below 1e-7 (seed 301: a
+    larger in norm, status 0); then the last iterate where its miss was below 1e-7 (seed 301: a
     minimiser only to 1e-6 by the natural residual, INACCURATE), else still the start (the K = 19 cases: norm 0.658
     and 1.78 against 0.584 and 1.416, status 0 and INACCURATE).  Now the stalled iterate is finished by a proximal
     step, a minimiser to rounding; INACCURATE where its miss stayed above ALM_FLOOR (2e-7: its norm is least only

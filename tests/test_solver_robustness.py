@@ -62,7 +62,7 @@ def test_least_norm_stage_stalled_at_its_inner_accuracy_takes_its_iterate_finish
     """Element 167 of a degenerate batch (K = 19, d = 1): A has two flat directions and entries up to 1.5e7.  The
     least-norm stage's augmented Lagrangian stalls at a miss of about 5e-8 of its scale (the inner solves' accuracy),
     3.8e5 away from its start: its last iterate is the least-norm minimiser up to that (it used to keep its start, a
-    minimiser 9 % larger in norm, with status 0; then, in session 9, the iterate itself, INACCURATE), finished by
+    minimiser 9 % larger in norm, with status 0; then the iterate itself, INACCURATE), finished by
     the proximal step into a minimiser, CONVERGED (the miss is below ALM_FLOOR).  Reference: the same stage
     converged from the interior-point method run to 1e-7 (no independent solver accepts the instance at these
     scales)."""

@@ -12,7 +12,7 @@ from diffcontact.state import State
 from diffcontact.systems import BENCHMARK_TASKS, build_task
 
 F64 = torch.float64
-STATE_TOL = 1e-6  # issue 15: final state within 1e-6 of the closed form with TOI
+STATE_TOL = 1e-6  # final state within 1e-6 of the closed form with TOI
 GRAD_TOL = 1e-4  # and its gradient within 1e-4
 
 
@@ -36,7 +36,7 @@ def final_x(task, x0, v0, frames, toi, dynamics="lagrangian"):
 
 
 def ball_wall(x0: float, speed: float, dt: float, toi: bool, steps: int = 100, dynamics: str = "lagrangian"):
-    """Issue 15's case: m = 1, r = 0.1, wall x = 1, e = 1, T = steps·dt: x(T) and ∂x(T)/∂(x0, v)."""
+    """The closed-form case: m = 1, r = 0.1, wall x = 1, e = 1, T = steps·dt: x(T) and ∂x(T)/∂(x0, v)."""
     task = balls(dt=dt)
     p = torch.tensor([x0, speed], dtype=F64, requires_grad=True)
     zero, half = torch.zeros((), dtype=F64), torch.tensor(0.5, dtype=F64)
@@ -55,7 +55,7 @@ def test_ball_wall_time_of_impact_matches_the_closed_form(x0, dt, dynamics):
 
 
 def test_ball_wall_published_scheme_has_the_documented_gradient_error():
-    """The published scheme (issue 15, main at 9dd4a82): x0 = 0.3 gives x(T) = 0.5 and gradient (+1, +0.2)
+    """The published scheme (no time of impact): x0 = 0.3 gives x(T) = 0.5 and gradient (+1, +0.2)
     instead of (−1, −1); x0 = 0.303 gives x(T) = 0.503 (closed form 0.497) and the same gradient."""
     xT, grad = ball_wall(0.3, 1.0, 0.01, toi=False)
     assert xT == pytest.approx(0.5, abs=1e-9)
@@ -132,7 +132,7 @@ def test_scheme_switch_and_task_keys():
 
 
 def test_ball_in_a_corner_with_friction_gets_the_minimum_norm_impulse():
-    """Issue 15 ambiguity (1): a ball hitting two perpendicular walls at once with friction has a singular A
+    """Time of impact, ambiguity (1): a ball hitting two perpendicular walls at once with friction has a singular A
     (4 contact rows, 2 degrees of freedom), so the compression impulse is not unique and the restitution bound
     e·f_n depends on the minimiser chosen. The solver returns the minimum-norm minimiser (solver/flat.py): checked
     here against Clarabel's minimum-norm minimiser (tests/solver_oracle.py), in the time-of-impact step."""
@@ -165,7 +165,7 @@ def test_ball_in_a_corner_with_friction_gets_the_minimum_norm_impulse():
 
 
 def test_rope_penetration_target_is_the_least_squares_projection_for_any_number_of_limits():
-    """Issue 15 ambiguity (2), the rule kept (src/diffcontact/tasks/Rope.toml, docs/gradients.md): v*_C = J J⁺ v_d, the
+    """Time of impact, ambiguity (2), the rule kept (tasks/Rope.toml, docs/gradients.md): v*_C = J J⁺ v_d, the
     orthogonal projection of the wanted normal velocities onto what the limit rows can reach, for any number of
     active limits (the published code switches rule when more limits than points are active). Checked on Rope
     states with more than 10 active limits: Jᵀ(v_d − v*_C) = 0, and v*_C = v_d where J has full row rank."""
