@@ -1,4 +1,4 @@
-"""The paper's baselines (spec F.2): relation graphs and sizes per system, the rollout interface of the contact
+"""The paper's baselines: relation graphs and sizes per system, the rollout interface of the contact
 models, what each step is made of, a float64 gradcheck of one interaction-network step, and short training."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Chunk selection (spec B): usable windows only, the collision share near one half, determinism, errors."""
+"""Chunk selection (the published rule): usable windows only, the collision share near one half, determinism, errors."""
 
 from __future__ import annotations
 

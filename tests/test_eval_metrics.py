@@ -1,4 +1,4 @@
-"""The published trajectory metrics (spec F.1) against values computed by hand on tiny arrays."""
+"""The published trajectory metrics against values computed by hand on tiny arrays."""
 
 from __future__ import annotations
 

@@ -457,7 +457,7 @@ def control_billiards(
     threads: int = THREADS,
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
-    """Billiards (spec G.1): the cue ball's initial position and velocity so that the last ball ends at the goal."""
+    """Billiards (the paper's): the cue ball's initial position and velocity so that the last ball ends at the goal."""
     _threads(threads)
     from diffcontact.control.run import run_billiards
 
@@ -487,7 +487,7 @@ def control_throw(
     threads: int = THREADS,
     progress: bool = typer.Option(True, help="Show a progress bar."),
 ) -> None:
-    """Throwing a disk (spec G.2, BD1): land on a target after a bounce, or rebound vertically through spin."""
+    """Throwing a disk (the paper's, BD1): land on a target after a bounce, or rebound vertically through spin."""
     _threads(threads)
     from diffcontact.control.run import run_throw
 

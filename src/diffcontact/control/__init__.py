@@ -1,4 +1,4 @@
-"""Control through contacts: optimise initial states through the simulator (spec G).
+"""Control through contacts: optimise initial states through the simulator (the paper's control tasks).
 
 :mod:`~diffcontact.control.optimise` (Levenberg–Marquardt with a batched line search, Adam),
 :mod:`~diffcontact.control.billiards` and :mod:`~diffcontact.control.throw` (the two problems),

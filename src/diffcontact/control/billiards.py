@@ -1,4 +1,4 @@
-"""The billiards shot (spec G.1): choose the cue ball's initial position and velocity so that the last ball of the
+"""The billiards shot (the paper's): choose the cue ball's initial position and velocity so that the last ball of the
 triangle ends at the goal.
 
 θ = (p_x, p_y, v_x, v_y) of the cue ball (m, m/s); the residual is x_last(T) − goal (m), T the task's last frame.

@@ -1,6 +1,6 @@
 """The control commands: optimise, report the loss per simulation with a progress bar, write the outputs.
 
-``diffcontact control billiards`` (spec G.1, H.7) and ``diffcontact control throw`` (spec G.2) call
+``diffcontact control billiards`` and ``diffcontact control throw`` (the paper's control tasks) call
 :func:`run_billiards` and :func:`run_throw`. The one random choice, the billiards search's cue lines, takes a
 seed (default 0, recorded in the JSON); the optimisers are deterministic.
 """
@@ -19,8 +19,8 @@ from diffcontact.control.outputs import loss_curves, motion_gif, write_result
 from diffcontact.control.throw import MODES, Physics, Throw
 from diffcontact.errors import ConfigError
 
-PUBLISHED_BILLIARDS = {1: 0.04548, 2: 0.02902}  # spec H.7: the first two iterations (200 in all, SGD lr 0.01)
-PUBLISHED_FINAL_STATE = (0.12431, 0.44550, 0.48702, 0.03730)  # spec G.1: main billiards.ipynb, iteration 199
+PUBLISHED_BILLIARDS = {1: 0.04548, 2: 0.02902}  # the published run: the first two iterations (200 in all, SGD lr 0.01)
+PUBLISHED_FINAL_STATE = (0.12431, 0.44550, 0.48702, 0.03730)  # the published notebook billiards.ipynb, iteration 199
 BILLIARDS_SCALE = (0.1, 0.1, 0.1, 0.1)  # θ = (p, v) in units of 0.1 m and 0.1 m/s
 BILLIARDS_RADIUS = 0.1  # LM's first step: at most 0.01 m / 0.01 m/s (the published SGD's first step is ~0.01)
 SEARCH_SPEED = 1.5  # m/s: the global stage's shots; time scaling gives every slower speed on their lines
@@ -113,8 +113,8 @@ def run_billiards(
     (:meth:`Billiards.search`: that many cue lines per round, seeded by ``seed``, in one batch each), and LM starts
     from its ``starts`` nearest candidates at once (one batch per simulation; Adam from the nearest); with 0 it
     starts from the task file's θ0 (the published setting). ``published``: also simulate the published final cue
-    state (spec G.1) with the published end-of-step scheme, for the loss curve's reference point at iteration 200
-    (on the spec's table only, as are the published points). Returns the JSON's content."""
+    state with the published end-of-step scheme, for the loss curve's reference point at iteration 200
+    (on the published table only, as are the published points). Returns the JSON's content."""
     if search_shots < 0:
         raise ConfigError(f"search_shots = {search_shots} is not >= 0")
     if starts < 1:
@@ -195,9 +195,9 @@ def run_billiards(
         "wall_time_s": wall,
         "published": {"first_iterations": PUBLISHED_BILLIARDS, "iterations": 200},
     }
-    spec_table = balls == 11 and shot.task.frames == 1024
-    markers = {"published, iterations 1-2 (spec H.7)": PUBLISHED_BILLIARDS} if spec_table else {}
-    if published and spec_table:
+    published_table = balls == 11 and shot.task.frames == 1024
+    markers = {"published, iterations 1-2": PUBLISHED_BILLIARDS} if published_table else {}
+    if published and published_table:
         ref = Billiards.build(time_of_impact=False)
         with torch.no_grad():
             r = ref.residual(torch.tensor([PUBLISHED_FINAL_STATE], dtype=torch.float64))[0]

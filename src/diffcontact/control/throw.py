@@ -1,4 +1,4 @@
-"""Throwing a disk (spec G.2, BD1: m = 0.1 kg, r = 0.1 m, μ = 0.2, e = 0.8, g = 9.81, in the unit box): choose
+"""Throwing a disk (the paper's, BD1: m = 0.1 kg, r = 0.1 m, μ = 0.2, e = 0.8, g = 9.81, in the unit box): choose
 its initial velocity so that it lands on a target, or its spin so that it rebounds vertically.
 
 The disk starts at rest-angle 0 at (0.25, 0.65) m. A ground bounce is a frame with a contact in which the centre's

@@ -1,6 +1,6 @@
 """Choose one training window ("chunk") per trajectory so that about half of the chunks contain a collision.
 
-The rule of the benchmark (spec B): windows of ``length`` frames at every start; a window is usable only if its
+The published benchmark's rule: windows of ``length`` frames at every start; a window is usable only if its
 first frame is not a collision frame. A trajectory is *marked* (wants a colliding chunk) if it has a collision and
 either fewer than half of the trajectories collide, or a coin with probability 0.5 / ratio says so. A marked
 trajectory with a colliding window gets one (uniformly at random); otherwise a window without collision is taken,

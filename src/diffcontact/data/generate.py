@@ -1,4 +1,4 @@
-"""Generate the datasets of a task (spec B): full trajectories from the ground-truth simulator (CM, float64),
+"""Generate the datasets of a task (as published): full trajectories from the ground-truth simulator (CM, float64),
 one 5-frame chunk per trajectory, optional noise, stored with metadata and checksums (see :mod:`store`)."""
 
 from __future__ import annotations

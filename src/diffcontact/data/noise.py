@@ -1,4 +1,4 @@
-"""Observation noise on stored frames that keeps the holonomic constraints (spec B, "Noise").
+"""Observation noise on stored frames that keeps the holonomic constraints (as the published data pipeline adds it).
 
 Three cases, chosen from what the System declares (never from its name):
 - a System with ``noise_coordinates`` (the chain pendulum: its absolute link angles in rad and their rates in

@@ -1,4 +1,4 @@
-"""Constrained Lagrangian dynamics in Cartesian coordinates (x, v) (paper Suppl. B; spec D.1).
+"""Constrained Lagrangian dynamics in Cartesian coordinates (x, v) (paper Suppl. B).
 
 v̇ = M⁻¹f − M⁻¹J_Eᵀλ with f = −∇V(x) and λ = (J_E M⁻¹ J_Eᵀ)⁻¹ (J_E M⁻¹ f + J̇_E v), so that the
 accelerations keep J_E v = 0. ∇V comes from autograd, so a learned potential runs through the same code.

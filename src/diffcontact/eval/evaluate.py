@@ -27,7 +27,7 @@ METRICS_VERSION = 2  # 2: energy deviation relative to the energy in motion (1: 
 STEPS = 5  # frames of the Fig. 3 error (0 … 4: the training horizon)
 CURVE = 50  # frames of the Fig. 4 curve and the Fig. 5 energy
 FRAMES = 70  # frames rolled out (the rollout pictures, paper Figs. 7-13)
-# the test trajectory shown in Fig. 5 (spec F.1), and 0 for the other tasks
+# the test trajectory shown in Fig. 5 of the paper, and 0 for the other tasks
 SHOWN = {"BP5-e": 4, "CP3-e": 2, "Gyro-e": 3}
 
 

@@ -1,4 +1,4 @@
-"""Trajectory metrics as published (spec F.1): relative error per frame, the 5-step error with its 95 % interval
+"""Trajectory metrics as published (paper Sec. 5): relative error per frame, the 5-step error with its 95 % interval
 (paper Fig. 3), the error curve (Fig. 4) and the true energy along a trajectory (Fig. 5).
 
 Every function takes the ground truth (the exact contact model CM in float64, from the same initial states) and

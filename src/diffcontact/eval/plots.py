@@ -19,7 +19,7 @@ def _pyplot():
 
 
 def _floor(values, published: float) -> float:
-    """The lower limit of a log axis: the published one (spec F.1), lowered to the decade below the smallest positive
+    """The lower limit of a log axis: the published one, lowered to the decade below the smallest positive
     value if that is smaller."""
     positive = [v for v in values if v > 0]
     return min(published, 10.0 ** np.floor(np.log10(min(positive)))) if positive else published

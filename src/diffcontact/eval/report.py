@@ -81,8 +81,8 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
         f"Runs evaluated: {sum(v is not None for v in metrics.values())} of {len(metrics)}; every table has a row or "
         "cell for each run, the others marked as not measured yet.",
         "",
-        "Metrics (spec F.1): relative error ‖ẑ − z‖/‖z‖ of each frame over positions and velocities; the ground truth "
-        "is the exact contact model (CM) in float64 from the test trajectories' initial states, for every model. "
+        "Metrics (the paper's): relative error ‖ẑ − z‖/‖z‖ of each frame over positions and velocities; the ground "
+        "truth is the exact contact model (CM) in float64 from the test trajectories' initial states, for every model. "
         "Tables and figures show seed " + str(seed) + ".",
         "",
     ]
@@ -107,7 +107,7 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
         lines += ["![Fig. 3](figures/fig3_errors.png)", ""]
     lines += [
         "Sum of the relative errors of frames 0-4, mean over the test trajectories ± the 95 % interval; "
-        "published values (spec H.5, CM-CD-CLNN only) in brackets.",
+        "the paper's values (CM-CD-CLNN only) in brackets.",
         "",
         "| task | " + " | ".join(models) + " |",
         "|---|" + "---|" * len(models),
@@ -202,7 +202,7 @@ def _table2(tasks, models, first, missing) -> list[str]:
     if not shown or not cms:
         return [*lines, f"No homogeneous task ({', '.join(HOMOGENEOUS)}) or contact model in this reproduction.", ""]
     lines += [
-        "Ours / published (spec H.2), each as μ, e.",
+        "Ours / the paper's Table 2, each as μ, e.",
         "",
         "| task (true μ, e) | " + " | ".join(cms) + " |",
         "|---|" + "---|" * len(cms),
@@ -255,7 +255,7 @@ def _mass_ratios(tasks, models, first, missing) -> list[str]:
     lines = [
         "## Learned mass ratios (mass / mass of body 0)",
         "",
-        "| task | model | true | ours | published (spec H.4) |",
+        "| task | model | true | ours | published |",
         "|---|---|---|---|---|",
     ]
     for t in tasks:

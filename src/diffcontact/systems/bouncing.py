@@ -1,7 +1,7 @@
 """Bouncing point masses (BP), bouncing disks (BD) and the billiards table: bodies in a box of walls, in 2-D, or
 balls in a box of planes in 3-D (``bodies.dim = 3``).
 
-Contact slots (spec A.1): the n(n−1)/2 pairs first, in lexicographic order, then ball–wall contacts at
+Contact slots (the published order): the n(n−1)/2 pairs first, in lexicographic order, then ball–wall contacts at
 n(n−1)/2 + n_walls·ball + wall. Disks are extended bodies (3 points, moments r²/4 per unit mass). Gravity acts
 along −y in 2-D and along −z in 3-D.
 """
@@ -162,7 +162,7 @@ def _box_sampler(cfg: TaskConfig, system: System, kind: str):
 
 
 def _billiards_sampler(cfg: TaskConfig, n: int, r: torch.Tensor):
-    """The billiards layout (spec G.1): cue ball at ``init.cue_position`` with ``init.cue_velocity``, the
+    """The billiards layout (the paper's): cue ball at ``init.cue_position`` with ``init.cue_velocity``, the
     others at rest in a triangle, layer i slot j at (0.5 + 2r i, 0.5 + 2r j − 0.7 r i). Deterministic."""
     init = cfg.section("init")
     cue_x = init.numbers("cue_position", length=2, default=[0.1, 0.5])

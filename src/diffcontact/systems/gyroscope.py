@@ -1,4 +1,4 @@
-"""Gyroscope with a wall (spec A.7): one 3D extended body (4 points) on a ball joint at the origin.
+"""Gyroscope with a wall (the paper's task): one 3D extended body (4 points) on a ball joint at the origin.
 
 The body's centre of mass is at body-frame offset ``com`` from the joint; its collision shape is a disk of
 radius ``disk_radius`` in the e1–e2 plane at height ``disk_height`` along e3 from the centre of mass. The

@@ -1,4 +1,4 @@
-"""Rope (spec A.6): n nodes of point mass hanging from a fixed anchor, Hooke springs on the links, and
+"""Rope (the paper's task): n nodes of point mass hanging from a fixed anchor, Hooke springs on the links, and
 joint limits on bending (|Δq| <= bend_limit) and stretching (stretch_min l0 <= |link| <= stretch_max l0).
 
 Limit slots: bend limit i (between links i and i+1) is slot i, stretch of link j is slot n−1+j; both sides

@@ -1,7 +1,7 @@
 """One definition of a training run's settings: :class:`TrainConfig`.
 
 A run's settings come from three places, in this order: a preset (``PRESETS``: "default", what learns on every task
-measured, docs/investigations.md; "published", the paper's, spec E), the task file's ``[training]`` table (with the
+measured, docs/investigations.md; "published", the paper's), the task file's ``[training]`` table (with the
 default preset only: :func:`task_training`) and what the caller gives.  :meth:`TrainConfig.resolve` applies them and
 validates every setting once; the run writes the result into config.json (``"args"``), a resumed run reads it back
 (:meth:`TrainConfig.from_record`), and the Lightning module takes its part (:meth:`TrainConfig.module_settings`).

@@ -1,4 +1,4 @@
-"""Lightning module: one of the four models trained on 5-frame chunks (paper Sec. 5, spec E).
+"""Lightning module: one of the four models trained on 5-frame chunks (paper Sec. 5).
 
 L1 loss on the predicted chunk (positions and velocities of every point, frame 0 included as published), AdamW
 (lr 1e-3, weight decay 1e-4).  Optimisation is manual so that a step whose gradients are not finite is skipped

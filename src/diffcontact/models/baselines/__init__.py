@@ -1,4 +1,4 @@
-"""The paper's three baselines (Sec. 5, spec F.2), with the interface of the contact models.
+"""The paper's three baselines (paper Sec. 5), with the interface of the contact models.
 
 MLP-CD-CLNN (learned CLNN, known collision detection, an MLP velocity jump), IN-CP-CLNN (learned CLNN plus an
 interaction network at every step) and IN-CP-SP (an interaction network alone).  They train on one-step pairs.

@@ -1,4 +1,4 @@
-"""The interaction-network baselines (paper Sec. 5, spec F.2; Battaglia et al. 2016).
+"""The interaction-network baselines (paper Sec. 5; Battaglia et al. 2016).
 
 IN-CP-SP: the interaction network alone predicts each point's next velocity from the state, the true inverse
 inertia and radii (object attributes), the true μ and e (relation attributes) and the true gravity (external
@@ -26,7 +26,7 @@ from diffcontact.models.params import LearnedParams
 from diffcontact.simulator import Simulator
 
 N_OBJECT_ATTRIBUTES = 2  # inverse inertia, contact radius
-SIZES = {  # (relational hidden, relational layers, effect, object hidden), spec F.2
+SIZES = {  # (relational hidden, relational layers, effect, object hidden), the published sizes
     "IN-CP-CLNN": (150, 4, 50, 100),
     "IN-CP-SP": (300, 4, 50, 200),
 }

@@ -1,4 +1,4 @@
-"""MLP-CD-CLNN (paper Sec. 5, spec F.2): the learned CLNN between contacts, an MLP for the velocity jump.
+"""MLP-CD-CLNN (paper Sec. 5): the learned CLNN between contacts, an MLP for the velocity jump.
 
 Each frame: one RK4 step of the learned constrained Lagrangian dynamics (the Simulator's own ``flow``), then the
 task's true collision detection; where any contact candidate is active, Δv = MLP([x, v] flattened) is added to
