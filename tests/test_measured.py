@@ -13,7 +13,7 @@ from diffcontact.cli import app
 from diffcontact.data.measured import GRAVITY, finite_difference_twist, first_states, import_tosses
 from diffcontact.data.tosses import SAMPLE, Tosses, read_tosses
 from diffcontact.errors import DatasetError
-from diffcontact.eval.pose_metrics import box_toss_metrics, face_down
+from diffcontact.eval.pose_metrics import box_toss_metrics, face_down, paired_difference, per_toss_position_error
 
 HALF = 0.0524
 
@@ -199,3 +199,22 @@ def test_the_import_and_nominal_evaluation_commands(tmp_path):
         ids = json.loads((data / "meta.json").read_text())["request"]["toss_ids"]["test"]
         assert z["toss_id"].tolist() == ids
     assert (out / "tosses.png").is_file()
+
+
+def test_two_methods_are_set_against_each_other_toss_by_toss():
+    position = np.zeros((5, 3))
+    hat = np.array([[0.0, 0.0, 0.1048], [0.0, 0.0, 0.0], [0.0524, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    errors = per_toss_position_error(hat, position, np.array([0, 2, 5]), [0.0524] * 3)
+    assert errors == pytest.approx([50.0, 50.0 / 3])  # (one width in 2 frames; half a width in 3)
+    same = paired_difference(errors, errors)
+    assert (same["mean"], same["lo"], same["hi"], same["tosses"]) == (0.0, 0.0, 0.0, 2)
+    shifted = paired_difference(errors + 1.5, errors)
+    assert shifted["mean"] == shifted["lo"] == shifted["hi"] == pytest.approx(1.5)
+    rng = np.random.default_rng(0)
+    a = rng.normal(10.0, 1.0, 200)
+    close, apart = paired_difference(a + rng.normal(0, 1, 200), a), paired_difference(a + 1.0, a - 1.0)
+    assert close["lo"] < 0 < close["hi"] and apart["lo"] == pytest.approx(2.0)  # (holds 0; does not)
+    b = a + rng.normal(0, 1, 200)
+    assert paired_difference(a, b, seed=3) == paired_difference(a, b, seed=3)  # (seeded: the same interval)
+    with pytest.raises(ValueError, match="paired errors"):
+        paired_difference(a, a[:-1])

@@ -33,3 +33,20 @@ def test_the_sweep_runs_its_cells_resumes_and_tabulates(tmp_path):
     assert again.exit_code == 0 and (out / "runs" / "nominal" / "eval" / "metrics.json").stat().st_mtime_ns == stamp
     bad = CliRunner().invoke(app, [*args[:5], "-m", "drake"])
     assert bad.exit_code == 2 and "unknown methods ['drake']" in bad.output
+    # the exact model set against each method toss by toss: here a "model" that predicts the recorded poses exactly
+    import numpy as np
+
+    from diffcontact.eval.toss_sweep import _paired, sweep_markdown
+    from diffcontact.eval.tosses import recorded_tosses
+
+    folder = out / "data" / "N4" / "CubeToss"
+    tosses, _ = recorded_tosses(folder, "test")
+    exact = out / "runs" / "N4" / "CM-CD-CLNN" / "eval"
+    exact.mkdir(parents=True)
+    np.savez(exact / "predictions.npz", position=tosses.position, quaternion=tosses.quaternion,
+             offsets=tosses.offsets, toss_id=tosses.toss_id)  # fmt: skip
+    paired = _paired(out, folder, ("CM-CD-CLNN", "nominal"), 4)
+    assert paired["nominal"]["mean"] == pytest.approx(-cells["4"]["position_error_pct"], rel=1e-12)
+    assert paired["nominal"]["lo"] <= paired["nominal"]["mean"] <= paired["nominal"]["hi"] < 0
+    text = sweep_markdown(record["table"], {"nominal": {"4": paired["nominal"]}})
+    assert "CM-CD-CLNN minus each method" in text and f"| nominal | {paired['nominal']['mean']:+.2f} [" in text

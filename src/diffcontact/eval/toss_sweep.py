@@ -23,6 +23,7 @@ from diffcontact.run_dir import RunDir
 SIZES = (8, 16, 32, 64, 128, 256)
 METHODS = ("CM-CD-CLNN", "CMr-CD-CLNN", "MLP-CD-CLNN", "IN-CP-CLNN", "mujoco", "bullet", "nominal")
 PEERS = ("mujoco", "bullet")
+REFERENCE = "CM-CD-CLNN"  # the method the others are set against, toss by toss
 METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 
 
@@ -43,20 +44,26 @@ def _dataset(source, out: Path, n: int | None, seed: int, split, task: str) -> P
     return folder
 
 
+def _folders(out: Path, method: str, n: int | None) -> tuple[Path, Path]:
+    """Where a method's cell at N lives: its run (or fit) folder, and the folder of its metrics.json and
+    predictions.npz (a run's eval/, a peer's own folder)."""
+    label = f"N{n}" if n else "all"
+    if method == "nominal":
+        run = out / "runs" / "nominal"
+    elif method in PEERS:
+        return out / "peers" / label / method, out / "peers" / label / method
+    else:
+        run = out / "runs" / label / method
+    return run, RunDir(run).eval_dir()
+
+
 def _cell(source, out: Path, method: str, n: int | None, folder: Path, seed: int, split, epochs, task, echo) -> dict:
     """The test metrics of one method at one training size, from its metrics.json or by running it."""
     from diffcontact.eval.evaluate import evaluate_nominal, evaluate_run
 
     label = f"N{n}" if n else "all"
-    if method == "nominal":
-        run = out / "runs" / "nominal"
-    elif method in PEERS:
-        run = out / "peers" / label / method
-    else:
-        run = out / "runs" / label / method
-    metrics = (
-        RunDir(run).eval_dir() / METRICS_FILE if method not in PEERS else run / METRICS_FILE
-    )  # (a peer's folder: its own)
+    run, scored = _folders(out, method, n)
+    metrics = scored / METRICS_FILE
     if metrics.is_file():
         return json.loads(metrics.read_text())
     started = time.perf_counter()
@@ -99,20 +106,42 @@ def toss_sweep(
     ``epochs``: training epochs (default: the task's). Returns the table {method: {N: metrics}}."""
     out = Path(out)
     table: dict[str, dict[str, dict]] = {m: {} for m in methods}
+    paired: dict[str, dict[str, dict]] = {m: {} for m in methods if m != REFERENCE}
     for n in sizes:
         folder = _dataset(source, out, n or None, seed, split, task)
         for method in methods:
             key = str(n or "all")
             table[method][key] = _fitted(_cell(source, out, method, n or None, folder, seed, split, epochs, task, echo))
+        if REFERENCE in methods:
+            for method, difference in _paired(out, folder, methods, n or None).items():
+                paired[method][str(n or "all")] = difference
     record = {"source": str(source), "seed": seed, "split": list(split), "sizes": list(sizes), "epochs": epochs}
-    write_json(out / "sweep.json", {"table": table, **record, "versions": versions()})
-    write_text(out / "sweep.md", sweep_markdown(table))
+    write_json(out / "sweep.json", {"table": table, "paired": paired, **record, "versions": versions()})
+    write_text(out / "sweep.md", sweep_markdown(table, paired))
     sweep_figure(table, out / "sweep.png")
     return table
 
 
-def sweep_markdown(table: dict[str, dict[str, dict]]) -> str:
-    """The sweep's tables: one per metric, methods as rows and training sizes as columns; "–" where not measured."""
+def _paired(out: Path, folder: Path, methods, n: int | None) -> dict[str, dict]:
+    """At one N: the exact model's per-toss position error minus each other method's, on the same test tosses
+    (``pose_metrics.paired_difference``), from the cells' predictions.npz."""
+    from diffcontact.eval.pose_metrics import paired_difference, per_toss_position_error
+    from diffcontact.eval.tosses import recorded_tosses
+
+    tosses, request = recorded_tosses(folder, "test")
+    errors = {}
+    for method in methods:
+        with np.load(_folders(out, method, n)[1] / "predictions.npz") as predicted:
+            if not np.array_equal(predicted["toss_id"], tosses.toss_id):
+                raise DiffContactError(f"{method} at N = {n} was scored on other test tosses than {folder}")
+            position = predicted["position"]
+        errors[method] = per_toss_position_error(position, tosses.position, tosses.offsets, request["half_extents_m"])
+    return {m: paired_difference(errors[REFERENCE], e) for m, e in errors.items() if m != REFERENCE}
+
+
+def sweep_markdown(table: dict[str, dict[str, dict]], paired: dict[str, dict[str, dict]] | None = None) -> str:
+    """The sweep's tables: one per metric, methods as rows and training sizes as columns; "–" where not measured;
+    then the exact model's paired difference to each method, with its 95 % interval."""
     sizes = sorted(
         {k for cells in table.values() for k in cells}, key=lambda k: (k == "all", 0 if k == "all" else int(k))
     )
@@ -124,7 +153,26 @@ def sweep_markdown(table: dict[str, dict[str, dict]]) -> str:
             vals = [_number(cells[k][metric]) if k in cells else "–" for k in sizes]
             lines.append(f"| {method} | " + " | ".join(vals) + " |")
         lines.append("")
+    if paired:
+        lines += [
+            f"**{REFERENCE} minus each method**: position error (% of width), the mean over the test tosses of the "
+            "paired difference, and its 95 % bootstrap interval (negative: the exact model is better; an interval "
+            "that holds 0 does not separate the two)",
+            "",
+            "| method | " + " | ".join(f"N = {k}" for k in sizes) + " |",
+            "| --- |" + " --- |" * len(sizes),
+        ]
+        for method, cells in paired.items():
+            vals = [_interval(cells[k]) if k in cells else "–" for k in sizes]
+            lines.append(f"| {method} | " + " | ".join(vals) + " |")
+        lines.append("")
     return "\n".join(lines)
+
+
+def _interval(d: dict) -> str:
+    if not all(np.isfinite([d["mean"], d["lo"], d["hi"]])) or max(abs(d["lo"]), abs(d["hi"])) >= 1e4:
+        return "diverged"
+    return f"{d['mean']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]"
 
 
 def _number(value: float) -> str:
