@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from diffcontact.config import load_task
+from diffcontact.config import TaskConfig, load_task
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.models.params import E_TRANSFORMS, MU_TRANSFORMS, POTENTIALS
@@ -101,8 +101,9 @@ class TrainConfig:
         """The settings of a new run of ``model`` (default CM-CD-CLNN) on ``task``: ``preset`` (default "default"),
         then the task file's ``[training]`` table (default preset only), then ``given`` where not None."""
         model, preset = model or "CM-CD-CLNN", preset or "default"
-        ref = load_task(task).ref  # (a packaged task's name, or a task file's path as found from anywhere)
-        own = task_training(task) if preset == "default" else {}
+        config = load_task(task)  # (parsed once: its reference, and its [training] table)
+        ref = config.ref  # (a packaged task's name, or a task file's path as found from anywhere)
+        own = task_training(config) if preset == "default" else {}
         chosen = {k: given.pop(k) for k in PRESET_SETTINGS if k in given}
         settings = resolve_preset(preset, own, **chosen)
         if model in BASELINE_NAMES:
@@ -131,6 +132,11 @@ class TrainConfig:
         if unknown:
             raise ConfigError(f"unknown training settings {unknown}; known: {known}")
         return cls(**settings)
+
+    @property
+    def processes(self) -> int:
+        """The processes of the run: ``devices`` on each of ``num_nodes`` machines."""
+        return self.devices * self.num_nodes
 
     def replace(self, **changes) -> TrainConfig:
         """A copy with ``changes``, validated."""
@@ -202,10 +208,10 @@ def resolve_preset(preset: str, task_settings: dict | None = None, **given) -> d
     return {k: v if given.get(k) is None else given[k] for k, v in base.items()}
 
 
-def task_training(task: str | Path) -> dict:
-    """The ``[training]`` table of a task file: the settings of the default preset that differ for this task
-    (for example ``mu_coef_lr``), each checked against its domain."""
-    table = load_task(task).section("training")
+def task_training(task: str | Path | TaskConfig) -> dict:
+    """The ``[training]`` table of a task file (or of its parsed ``TaskConfig``): the settings of the default preset
+    that differ for this task (for example ``mu_coef_lr``), each checked against its domain."""
+    table = (task if isinstance(task, TaskConfig) else load_task(task)).section("training")
     defaults = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
     settings = {}
     for key in table.data:

@@ -261,7 +261,7 @@ def train_run(
             dtype=getattr(torch, config.dtype),
             seed=config.seed,
         )
-        processes = config.devices * config.num_nodes
+        processes = config.processes
         max_epochs = planned_epochs(config.epochs, config.min_steps, data.batches_per_epoch(processes))
         if resume and max_epochs < done:
             raise ConfigError(
@@ -308,7 +308,7 @@ def _settings(
 
 def _record(run: RunDir, config: TrainConfig, accelerator: str, first: bool) -> None:
     """Write config.json (the settings, the versions and how the processes share the work) and say it."""
-    processes = config.devices * config.num_nodes
+    processes = config.processes
     parallel = dict(
         processes=processes,
         accelerator=accelerator,
@@ -350,7 +350,7 @@ def _trainer(
     )
     for tmp in run.checkpoints.glob(f"{TMP_PREFIX}*") if first else ():  # (a checkpoint half-written at a kill)
         tmp.unlink(missing_ok=True)
-    processes = config.devices * config.num_nodes
+    processes = config.processes
     trainer = pl.Trainer(
         max_epochs=max_epochs,
         # (epochs raised for a small dataset validate as often as the epochs asked for would: the validation
