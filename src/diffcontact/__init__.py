@@ -1,6 +1,7 @@
 """diffcontact: learn the dynamics of colliding rigid bodies with a differentiable contact model."""
 
 import warnings
+from typing import TYPE_CHECKING
 
 from diffcontact.threads import quiet_waiting_env, spin_warning
 
@@ -18,6 +19,14 @@ from diffcontact.state import Inertia, Params, State
 from diffcontact.systems.registry import BENCHMARK_TASKS, build_task
 
 __version__ = "0.1.0"
+
+if TYPE_CHECKING:  # (what the lazy entry points below are, for type checkers and editors)
+    from diffcontact.data.generate import generate_dataset
+    from diffcontact.data.measured import import_tosses
+    from diffcontact.eval.evaluate import evaluate_nominal, evaluate_run
+    from diffcontact.models.model import build_model
+    from diffcontact.solver.contact_solver import ContactSolver
+    from diffcontact.train.run import train_run
 
 # The workflow's entry points, imported when first used (they load Lightning, plotting and the data layer, which
 # the solver and the simulator do not need): ``dc.generate_dataset(...)``, ``dc.train_run(...)`` and so on.

@@ -316,6 +316,9 @@ def evaluate(
     """Metrics of a run's best model on a split: on simulated data the 5-step error, error curve and true energy
     against the exact model; on measured tosses (diffcontact import) the position, rotation and penetration errors."""
     _threads(threads)
+    if on_solver_failure not in ("raise", "count"):
+        raise typer.BadParameter(f"{on_solver_failure!r} is not raise or count", param_hint="--on-solver-failure")
+    failure = "count" if on_solver_failure == "count" else "raise"
     from diffcontact.eval.evaluate import evaluate_nominal, evaluate_run
 
     with _user_errors():  # (a bad run or data, a failed solve, a diverging model)
@@ -324,7 +327,7 @@ def evaluate(
         else:
             m = evaluate_run(
                 run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures,
-                out=out or None, on_solver_failure=on_solver_failure,
+                out=out or None, on_solver_failure=failure,
             )  # fmt: skip
     if "position_error_pct" in m:
         typer.echo(f"{m['task']} {m['model']}: position error {m['position_error_pct']:.2f} % of the width, "

@@ -9,11 +9,16 @@ import json
 import os
 import platform
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from diffcontact.errors import ConfigError
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 TMP_PREFIX = ".tmp-"
 
@@ -83,14 +88,15 @@ def write_json(path: str | Path, obj, sort_keys: bool = False) -> Path:
 
 def save_npz(path: str | Path, **arrays) -> Path:
     """Arrays into a compressed .npz, atomically."""
-    atomic_write(Path(path), lambda fh: np.savez_compressed(fh, **{k: np.asarray(a) for k, a in arrays.items()}))
+    # (pyright matches the unpacked names against numpy's allow_pickle flag too: none of them is that)
+    atomic_write(Path(path), lambda fh: np.savez_compressed(fh, **{k: np.asarray(a) for k, a in arrays.items()}))  # pyright: ignore[reportArgumentType]
     return Path(path)
 
 
-def save_arrays(path: str | Path, arrays: dict[str, np.ndarray]) -> str:
+def save_arrays(path: str | Path, arrays: Mapping[str, ArrayLike]) -> str:
     """Write arrays to ``path`` (.npz, uncompressed) atomically; returns its SHA-256."""
     path = Path(path)
-    atomic_write(path, lambda fh: np.savez(fh, **arrays))
+    atomic_write(path, lambda fh: np.savez(fh, **arrays))  # pyright: ignore[reportArgumentType] (as in save_npz)
     return sha256(path)
 
 
@@ -115,7 +121,8 @@ def save_gif(path: str | Path, frames: list[np.ndarray], seconds_per_frame: floa
     """RGB frames (H, W, 3) uint8 as a looping GIF, atomically."""
     import imageio.v2 as imageio
 
-    atomic_write(Path(path), lambda fh: imageio.mimsave(fh, frames, format="GIF", duration=seconds_per_frame, loop=0))
+    ims = cast("list[ArrayLike]", frames)  # (imageio asks for a list of ArrayLike, which a list of arrays is not)
+    atomic_write(Path(path), lambda fh: imageio.mimsave(fh, ims, format="GIF", duration=seconds_per_frame, loop=0))
     return Path(path)
 
 

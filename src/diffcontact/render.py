@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from diffcontact.files import save_gif
 from diffcontact.systems.base import System
 
+if TYPE_CHECKING:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-def _plane_segment(n: np.ndarray, c: float, view) -> np.ndarray | None:
+
+def _plane_segment(n: np.ndarray, c: float, view) -> np.ndarray:
     """Endpoints (2, 2) of the line n·y + c = 0 clipped to a square around the view box."""
     (x0, x1), (y0, y1) = view
     pad = 0.5 * max(x1 - x0, y1 - y0)
@@ -94,6 +98,7 @@ def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | P
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d import Axes3D
 
     frames = []
     fig = plt.figure(figsize=(4, 4), dpi=80)
@@ -110,10 +115,9 @@ def render_gif(system: System, x: np.ndarray, contact: np.ndarray, path: str | P
             ax.set_xlim(x0 - pad, x1 + pad)
             ax.set_ylim(y0 - pad, y1 + pad)
             ax.set_aspect("equal")
-        ax.text2D(0.02, 0.95, f"t = {t * dt:.3f} s", transform=ax.transAxes, fontsize=8) if system.d == 3 else ax.text(
-            0.02, 0.95, f"t = {t * dt:.3f} s", transform=ax.transAxes, fontsize=8
-        )
+        text = ax.text2D if isinstance(ax, Axes3D) else ax.text  # (3-D axes: system.d == 3)
+        text(0.02, 0.95, f"t = {t * dt:.3f} s", transform=ax.transAxes, fontsize=8)
         fig.canvas.draw()
-        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+        frames.append(np.asarray(cast("FigureCanvasAgg", fig.canvas).buffer_rgba())[..., :3].copy())
     plt.close(fig)
     save_gif(path, frames, max(dt * every, 0.02))

@@ -71,10 +71,13 @@ class Simulator:
     def step(self, state: State, params: Params, dt: float) -> tuple[State, torch.Tensor]:
         """One frame of dt (s): ``substeps`` substeps, each RK4 then contacts (Algorithm 1, or at the time of
         impact). Returns (state at t + dt, in_contact (B,) bool: a contact in any substep)."""
-        h = dt / self.substeps
+        substeps = self.substeps
+        if substeps is None:  # (unreachable: __post_init__ sets it)
+            raise ConfigError("substeps is not set")
+        h = dt / substeps
         x, v = state.x, state.v
         hit = torch.zeros(state.batch, dtype=torch.bool)
-        for _ in range(self.substeps):
+        for _ in range(substeps):
             x, v, sub_hit = self._substep(params, x, v, h)
             hit = hit | sub_hit
         return State(x, v), hit

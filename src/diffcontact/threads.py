@@ -128,7 +128,8 @@ def set_threads(threads: int | None = None) -> int:
 
         raise ConfigError(f"threads = {threads!r} is not an integer >= 1")
     torch.set_num_threads(threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    # (numba.config, numba's documented name, is set up at run time: its typing knows neither it nor its attributes)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))  # pyright: ignore[reportPrivateImportUsage, reportAttributeAccessIssue]
     return threads
 
 

@@ -20,8 +20,10 @@ import time
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
+from typing import TypedDict
 from unittest import mock
 
+import lightning
 import lightning.pytorch as pl
 
 from diffcontact.config import load_task
@@ -106,13 +108,21 @@ def _line(row: dict) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
+class DatasetSizes(TypedDict, total=False):
+    """The sizes of a dataset to generate (keywords of ``generate_dataset``)."""
+
+    n_train: int
+    n_val: int
+    n_test: int
+
+
 def run_memory_benchmark(
     tasks: list[str] | None = None,
     epochs: int | None = None,
     data: str = "data",
     out: str | None = None,
     threads: int = 1,
-    sizes: dict[str, int] | None = None,
+    sizes: DatasetSizes | None = None,
     echo: Callable[[str], None] = print,
 ) -> dict:
     """Train each task (default: ``BENCHMARK_TASKS``) for ``epochs`` (default: its own) as the module docstring
@@ -123,7 +133,7 @@ def run_memory_benchmark(
     for name in names:  # (a bad name fails before hours of training)
         load_task(name)
     header = {
-        **versions(lightning=pl.__version__),
+        **versions(lightning=lightning.__version__),
         "cpus": os.cpu_count(),
         "threads": threads,
         "load_average_before": list(os.getloadavg()),

@@ -60,7 +60,10 @@ def run_near_psd_benchmark(total: int = 100_000, batch: int = 1000, seed: int = 
                 ins = [t.to(dtype).clone().requires_grad_() for t in (A, q, mu, lower)]
                 f, info = solve_cone_qp(*ins, on_failure="count", return_info=True)
                 f.sum().backward()
-                if not all(torch.isfinite(t.grad).all() for t in ins) or not torch.isfinite(f).all():
+                if (
+                    not all(t.grad is not None and torch.isfinite(t.grad).all() for t in ins)
+                    or not torch.isfinite(f).all()
+                ):
                     raise AssertionError(f"non-finite solution or gradient (K = {K}, d = {d}, {dtype})")
                 for s in Status:
                     counts[s.name] += int((info.status == s).sum())

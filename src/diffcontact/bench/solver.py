@@ -36,6 +36,8 @@ def _time_fwd_bwd(solver, A, q, mu, lower, repeats: int) -> tuple[float, float, 
         f.sum().backward()
         times.append(time.perf_counter() - t0)
         cpu_times.append(time.process_time() - c0)
+    if f is None:
+        raise ValueError(f"repeats = {repeats} is not >= 0")
     return statistics.median(times[1:]), statistics.median(cpu_times[1:]), f.detach()
 
 
@@ -54,6 +56,7 @@ def run_solver_benchmark(
     if not dims or any(d not in (1, 2, 3) for d in dims):
         raise ConfigError(f"dims = {dims!r}: every contact dimension must be 1, 2 or 3")
     # (threads: the caller's, e.g. `diffcontact bench solver --threads N`)
+    reference_solver = None  # (with ``reference``)
     if reference:
         import functools
 
@@ -82,7 +85,7 @@ def run_solver_benchmark(
                 A, q, mu, lower = _instances(gen, B, K, d)
                 t_ours, c_ours, f_ours = _time_fwd_bwd(solve_cone_qp, A, q, mu, lower, repeats)
                 row = {"d": d, "K": K, "B": B, "ours_us": 1e6 * t_ours / B, "ours_cpu_us": 1e6 * c_ours / B}
-                if reference:
+                if reference_solver is not None:
                     Br = min(B, ref_max_batch)
                     # (its cost varies by ±30 % from run to run on a shared machine: a median of 3)
                     ref_in = (A[:Br], q[:Br], mu[:Br], lower[:Br])

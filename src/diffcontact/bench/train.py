@@ -35,8 +35,10 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -44,7 +46,7 @@ import diffcontact
 from diffcontact.data.generate import make_split
 from diffcontact.errors import ConfigError
 from diffcontact.files import atomic_write
-from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+from diffcontact.models import BASELINE_NAMES, MODEL_NAMES, ContactModelNet
 from diffcontact.systems import BENCHMARK_TASKS, build_task
 from diffcontact.train.module import ContactLightningModule
 
@@ -73,7 +75,7 @@ class NoContacts:
 class TimedContacts:
     """A contact model that adds the wall time of its forward calls to ``seconds``."""
 
-    model: object
+    model: Callable[..., Any]
     seconds: float = 0.0
 
     def __call__(self, *args, **kwargs):
@@ -94,18 +96,24 @@ class StepTimer:
         self.net = self.module.net
         self.baseline = self.module.baseline
         if not self.baseline:
-            sim = self.net.simulator
+            sim = self._contact_net().simulator
             self.timed = TimedContacts(sim.contact_model)
             self.sims = {
                 True: replace(sim, contact_model=self.timed),
                 False: replace(sim, system=replace(sim.system, detector=NoContacts())),
             }
 
+    def _contact_net(self) -> ContactModelNet:
+        """The model's net, a contact model's (not a baseline's)."""
+        if not isinstance(self.net, ContactModelNet):
+            raise TypeError(f"{self.module.config.model} is not a contact model (ContactModelNet)")
+        return self.net
+
     def step(self, contacts: bool = True) -> dict[str, float]:
         """One training step; returns its parts' wall times in s (forward, backward, optimiser, contact_fwd) and
         the CPU time of the process (``cpu``, all threads: less sensitive to other processes than wall time)."""
         if not self.baseline:
-            self.net.simulator = self.sims[contacts]
+            self._contact_net().simulator = self.sims[contacts]
             self.timed.seconds = 0.0
         c0, t0 = time.process_time(), time.perf_counter()
         loss = self.module.loss(self.batch)
@@ -116,8 +124,9 @@ class StepTimer:
         grads = [p.grad for p in self.net.parameters() if p.grad is not None]
         if all(bool(torch.isfinite(g).all()) for g in grads) and bool(torch.isfinite(loss)):
             self.opt.step()
-            if self.module.learns_contacts:
-                self.module.learned.project_()
+            learned = self.module.learned
+            if self.module.learns_contacts and learned is not None:
+                learned.project_()
         t3, c3 = time.perf_counter(), time.process_time()
         contact_fwd = self.timed.seconds if not self.baseline and contacts else 0.0
         parts = {"forward": t1 - t0, "backward": t2 - t1, "optimiser": t3 - t2, "contact_fwd": contact_fwd}
@@ -153,6 +162,8 @@ def start_busy(n: int) -> list[subprocess.Popen]:
         for _ in range(n)
     ]
     for p in procs:  # (ready: tied to this process, and spinning)
+        if p.stdout is None:
+            raise RuntimeError("a busy process has no stdout pipe")
         p.stdout.readline()
     return procs
 
@@ -169,7 +180,8 @@ def stop_busy(procs: list[subprocess.Popen]) -> None:
             p.send_signal(signal.SIGCONT)
             p.kill()
         p.wait()
-        p.stdout.close()
+        if p.stdout is not None:
+            p.stdout.close()
 
 
 def time_model(timer: StepTimer, warmup: int, repeats: int, busy: list[subprocess.Popen]) -> dict:

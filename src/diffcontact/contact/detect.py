@@ -69,6 +69,8 @@ class Detector:
         blocks = []
         for kind, place in zip(self.kinds, self._place):  # a handful of declared kinds, not contacts
             _, vals = kind.evaluate(ext, rows=True)  # (B, K, m, dck, d)
+            if vals is None:
+                raise TypeError(f"{type(kind).__name__}.evaluate(rows=True) returned no rows")
             padded = torch.nn.functional.pad(vals, (0, 0, 0, self.dc - kind.dc))
             rows = torch.einsum("kmp,bkmrd->bkrpd", place.to(x), padded)
             blocks.append(rows.reshape(B, kind.count, self.dc, self.P * self.d))

@@ -61,6 +61,7 @@ def impact_fraction(
     atol = 64 * torch.finfo(x.dtype).eps
     lo, hi = torch.zeros_like(s0), torch.ones_like(s0)
     s = s0.clamp(0.0, 1.0)
+    xr = vr = slope = None  # (set by the first iteration)
     for it in range(NEWTON_ITERS):
         xr, vr = flow(x, v, (s * L)[:, None, None])
         g, rate = detector.rates(xr, vr)
@@ -73,6 +74,8 @@ def impact_fraction(
         if bool((s_next == s).all()) or it == NEWTON_ITERS - 1:  # converged, or return the last point evaluated
             break
         s = s_next
+    if xr is None or vr is None or slope is None:
+        raise ValueError(f"NEWTON_ITERS = {NEWTON_ITERS} is not >= 1")
     return s, xr, vr, slope
 
 
@@ -122,6 +125,8 @@ def toi_step(
             gc = detector.gaps(xc)
             mark = (gc < tol) | torch.nn.functional.one_hot(k, gc.shape[1]).bool()
         contacts = detector.select(xc, mark, gc.clamp_max(0.0))
+        if contacts is None:  # (unreachable: every row marks its event's candidate k)
+            raise AssertionError("no contact at a time of impact")
         ph = model.phases(system.constraints, params, xc, vc, contacts, dt)
         vc = vc + (ph.MhJt @ (ph.f_c + ph.f_r)[..., None]).reshape(vc.shape)
         L_after = (1 - s) * L

@@ -141,7 +141,7 @@ def levenberg_marquardt(
         slow[idx] = torch.where(best_loss < (1 - stall) * loss[idx], 0, slow[idx] + 1)
         top = int(torch.argmin(best_loss))
         hist.record(cands[top, best[top]], float(best_loss[top]), bool(keep[top]), len(idx) * trials)
-        if r2 is not None:
+        if r2 is not None and J2 is not None:
             pick = torch.arange(len(idx))
             rows = pick * trials + best
             theta[idx] = torch.where(keep[:, None], cands[pick, best], theta[idx])

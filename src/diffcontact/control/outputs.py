@@ -4,12 +4,16 @@ the motion with its target marked (GIF), and a JSON of results, config and versi
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from diffcontact.files import save_figure, save_gif, versions, write_json
 from diffcontact.render import draw_2d
 from diffcontact.systems.base import System
+
+if TYPE_CHECKING:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 
 def loss_curves(
@@ -75,7 +79,7 @@ def motion_gif(
             ax.set_title(label, fontsize=8)
         fig.suptitle(f"t = {t * dt:.3f} s", fontsize=8)
         fig.canvas.draw()
-        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+        frames.append(np.asarray(cast("FigureCanvasAgg", fig.canvas).buffer_rgba())[..., :3].copy())
     plt.close(fig)
     save_gif(path, frames, max(dt * every, 0.02))
     return Path(path)

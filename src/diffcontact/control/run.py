@@ -74,6 +74,13 @@ def optimise(
         bar.close()
 
 
+def _best(hist: History) -> torch.Tensor:
+    """The best θ of a finished optimisation (which records its start: never None)."""
+    if hist.theta is None:
+        raise ValueError("the optimisation recorded no θ")
+    return hist.theta
+
+
 def _history(hist: History) -> dict:
     return {
         "losses": hist.losses,
@@ -82,7 +89,7 @@ def _history(hist: History) -> dict:
         "simulations": hist.simulations,
         "steps_accepted": sum(hist.accepted) - 1,
         "trajectories": hist.trajectories,
-        "best_theta": hist.theta.tolist(),
+        "best_theta": _best(hist).tolist(),
         "best_loss": hist.loss,
         "stop": hist.stop,
     }
@@ -158,7 +165,7 @@ def run_billiards(
     curve += hist.losses
     wall = time.perf_counter() - t0
     with torch.no_grad():
-        x, hit, _ = shot.rollout(hist.theta[None])
+        x, hit, _ = shot.rollout(_best(hist)[None])
     result = {
         "problem": "billiards",
         "config": {
@@ -187,7 +194,7 @@ def run_billiards(
         "simulations": len(curve),
         "steps_accepted": sum(hist.accepted) - 1,
         "trajectories": (search["shots"] if search else 0) + hist.trajectories,
-        "best_theta": hist.theta.tolist(),
+        "best_theta": _best(hist).tolist(),
         "best_loss": hist.loss,
         "stop": hist.stop,
         "final_position": x[0, -1, -1].tolist(),
@@ -274,7 +281,7 @@ def run_throw(
             hist = optimise(problem.residual, problem.theta0, optimiser, max_simulations, tol, scale, 1.0, trials, lr,
                             f"{mode} ({physics.label})", echo, progress)  # fmt: skip
             key = "true" if physics is true else "learned"
-            landings = true_problem.landings(hist.theta)  # (replayed with the true properties)
+            landings = true_problem.landings(_best(hist))  # (replayed with the true properties)
             entry[key] = {**_history(hist), "wall_time_s": time.perf_counter() - t0, "landings_true_physics": landings}
             if physics is true:
                 landing_true = landings[-1]
@@ -282,8 +289,8 @@ def run_throw(
                 gap = torch.tensor(landings[-1]) - torch.tensor(landing_true)
                 entry[key]["landing_distance_to_true_throw_m"] = float(gap.norm())
             curves[physics.label] = hist.losses
-            frames = int(true_problem.bounce_frames(hist.theta[None], 2)[2][0, -1]) + 15
-            x, hit = true_problem.trajectory(hist.theta, frames)
+            frames = int(true_problem.bounce_frames(_best(hist)[None], 2)[2][0, -1]) + 15
+            x, hit = true_problem.trajectory(_best(hist), frames)
             label = "true properties" if physics is true else "learned properties (replayed true)"
             rows[label], flags[label] = x.numpy(), hit.numpy()
         what = "centre at 2nd ground impact - target" if mode == "hit" else "v_x after the 1st ground impact"

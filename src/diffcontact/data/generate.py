@@ -89,7 +89,8 @@ def simulate_split(
                 parts = [tuple(torch.from_numpy(a) for a in future.result()) for future in futures]
             except BrokenProcessPool as err:
                 raise DiffContactError(f"{label}: a worker process ended abruptly (killed? out of memory?)") from err
-    return tuple(torch.cat([p[k] for p in parts]) for k in range(3))
+    x, v, c = (torch.cat([p[k] for p in parts]) for k in range(3))
+    return x, v, c
 
 
 def blocks(n: int) -> list[int]:
@@ -110,8 +111,8 @@ def _simulate_block(config, x: np.ndarray, v: np.ndarray, frames: int, threads: 
     """In a worker process: the task rebuilt from its config, ``frames`` frames from the states (x, v) as arrays."""
     torch.set_num_threads(threads)
     task = build_task(config)
-    x, v, c = _simulate(task, State(torch.from_numpy(x), torch.from_numpy(v)), frames, None)
-    return x.numpy(), v.numpy(), c.numpy()
+    xs, vs, cs = _simulate(task, State(torch.from_numpy(x), torch.from_numpy(v)), frames, None)
+    return xs.numpy(), vs.numpy(), cs.numpy()
 
 
 def _simulate(
@@ -276,21 +277,21 @@ def _generate_into(
     """generate_dataset's work, under the folder's lock."""
     if not force and (folder / "meta.json").is_file():
         try:
-            meta = load_meta(folder)
+            old: dict[str, Any] | None = load_meta(folder)
         except DatasetError:
-            meta = None  # (incomplete or unreadable: regenerated)
-        if meta is not None and meta["request"] != request:
+            old = None  # (incomplete or unreadable: regenerated)
+        if old is not None and old["request"] != request:
             raise ConfigError(
-                f"{folder} holds a dataset of another request ({_differences(meta['request'], request)}); replace it "
+                f"{folder} holds a dataset of another request ({_differences(old['request'], request)}); replace it "
                 "with --force (force=True), or generate into another --out"
             )
         try:
-            if meta is not None:
+            if old is not None:
                 for split in SPLITS:  # (as strong as loading: config, checksum, the arrays as recorded)
                     load_split(folder, split, task.config)
                 if echo:
                     echo(f"{task.config.name}: an identical, valid dataset exists in {folder}; skipped")
-                return {**meta, "skipped": True}
+                return {**old, "skipped": True}
         except DatasetError:
             pass  # invalid: regenerated
     remove_stale(folder)

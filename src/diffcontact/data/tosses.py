@@ -58,13 +58,17 @@ class Tosses:
     def subset(self, index: np.ndarray) -> Tosses:
         """The tosses ``index`` (m,) (positions into this set), in that order."""
         index = np.asarray(index, dtype=np.int64)
-        rows = np.concatenate([np.arange(self.offsets[i], self.offsets[i + 1]) for i in index]) if len(index) else []
+        rows = (
+            np.concatenate([np.arange(int(self.offsets[i]), int(self.offsets[i + 1])) for i in index])
+            if len(index)
+            else []
+        )
         rows = np.asarray(rows, dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(self.lengths[index])]).astype(np.int64)
         pick = {k: getattr(self, k)[rows] for k in ("position", "quaternion", "velocity", "omega")}
         return Tosses(**pick, offsets=offsets, toss_id=self.toss_id[index], dt=self.dt)
 
-    def arrays(self) -> dict[str, np.ndarray]:
+    def arrays(self) -> dict[str, np.ndarray | np.float64]:
         """The arrays to store (``save_arrays``), dt included."""
         keys = ("position", "quaternion", "velocity", "omega", "offsets", "toss_id")
         return {k: getattr(self, k) for k in keys} | {"dt": np.float64(self.dt)}

@@ -6,12 +6,16 @@ Bodies are drawn by :mod:`diffcontact.render` (the same drawing as ``diffcontact
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from diffcontact.files import save_figure, save_gif
 from diffcontact.render import draw_2d, draw_3d
 from diffcontact.systems.base import System
+
+if TYPE_CHECKING:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 
 def _axes(fig, system: System, rows: int, cols: int, i: int):
@@ -46,6 +50,7 @@ def rollout_strip(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d import Axes3D
 
     T = next(iter(rows.values())).shape[0]
     shown = list(range(0, T, every))
@@ -57,7 +62,7 @@ def rollout_strip(
             _draw(ax, system, x[t], bool(contact[t]) if r == 0 else False)
             ax.set_title(f"{t * dt:.2f} s" + (" (contact)" if contact[t] else "") if r == 0 else "", fontsize=7)
             if c == 0:
-                text = ax.text2D if system.d == 3 else ax.text
+                text = ax.text2D if isinstance(ax, Axes3D) else ax.text  # (3-D axes: system.d == 3)
                 text(-0.08, 0.5, label, transform=ax.transAxes, rotation=90, ha="right", va="center", fontsize=7)
     fig.subplots_adjust(left=0.06, right=0.995, top=0.9, bottom=0.01, wspace=0.03, hspace=0.05)
     save_figure(fig, path, dpi=70, colors=64)
@@ -85,7 +90,7 @@ def compare_gif(
             ax.set_title(label, fontsize=9)
         fig.suptitle(f"t = {t * dt:.3f} s", fontsize=9)
         fig.canvas.draw()
-        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+        frames.append(np.asarray(cast("FigureCanvasAgg", fig.canvas).buffer_rgba())[..., :3].copy())
     plt.close(fig)
     save_gif(path, frames, max(dt, 0.02))
     return Path(path)

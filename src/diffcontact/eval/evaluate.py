@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Literal
 
 import torch
 
@@ -40,7 +41,7 @@ def evaluate_run(
     frames: int | None = None,
     pictures: bool = True,
     out: str | Path | None = None,
-    on_solver_failure: str = "raise",
+    on_solver_failure: Literal["raise", "count"] = "raise",
 ) -> dict:
     """Evaluate the best checkpoint of ``run`` on ``split`` of its task's dataset (``data_root``: default the root
     the run was trained from) and write ``run/eval/``: metrics.json (atomically; the metrics, the run's config and
@@ -152,5 +153,5 @@ def evaluate_nominal(
     folder = dataset_folder(data_root, built.config.name)
     if not measured(folder):
         raise DatasetError(f"{folder}: --nominal evaluates measured tosses (diffcontact import), not simulated data")
-    record = {"task": built.config.name, "model": "nominal (the task file's values, exact model CM)"}
-    return evaluate_tosses(known_model(built), folder, out, split, pictures, **record)
+    model = "nominal (the task file's values, exact model CM)"
+    return evaluate_tosses(known_model(built), folder, out, split, pictures, task=built.config.name, model=model)

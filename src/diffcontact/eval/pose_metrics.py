@@ -7,6 +7,8 @@ table). Errors are averaged over the frames of each toss, then over tosses, so t
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 
@@ -68,7 +70,7 @@ def box_toss_metrics(
     offsets: np.ndarray,
     half_extents,
     table_height: float,
-) -> dict[str, float]:
+) -> dict[str, Any]:
     """The three numbers of a box-toss evaluation, each a mean over tosses of the mean over a toss's frames:
 
     - ``position_error_pct``: ‖p̂ − p‖ of the centre, in % of the box's width (2 half-extents along x);

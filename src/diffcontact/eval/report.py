@@ -245,7 +245,7 @@ def _slots(tasks, models, first, missing) -> list[str]:
                 "|---|---|---|" + "---|" * len(cms),
             ]
             for i in range(len(pub)):
-                ours = [_num(vecs[m][i]) if vecs[m] else missing.get((t, m), "—") for m in cms]
+                ours = [_num(vec[i]) if (vec := vecs[m]) else missing.get((t, m), "—") for m in cms]
                 lines.append(f"| {i} | {_num(truth[i] if truth else None)} | {pub[i]:.4f} | " + " | ".join(ours) + " |")
             lines.append("")
     return lines
@@ -293,6 +293,8 @@ def _rollouts(out, tasks, models, seed, first, missing, figures) -> list[str]:
                 rows[m] = arrays["x_hat"]
         lines += ["", f"### {t}", ""]
         if rows:
+            if contact is None or dt is None:  # (unreachable: read with the truth's row)
+                raise AssertionError(f"{t}: the truth's rollout has no contact flags or dt")
             rollout_strip(build_task(t).system, rows, contact, figures / f"rollout_{t}.png", dt)
             lines += [f"![{t}](figures/rollout_{t}.png)", ""]
         for m in models:

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from diffcontact.config import available_tasks
 from diffcontact.errors import ConfigError
@@ -147,9 +148,11 @@ class Progress:
         unnamed = self.total - self.done - len(self.running) - len(self.waiting)  # (counted, not named)
         guesses = [self.expected.get(k, mean) for k in self.waiting] + [mean] * unnamed
         running = [(self.expected.get(k, mean), now - t) for k, t in self.running.items()]
-        if any(g is None for g in guesses) or any(g is None for g, _ in running):
+        known = [g for g in guesses if g is not None]
+        known_running = [(g, spent) for g, spent in running if g is not None]
+        if len(known) < len(guesses) or len(known_running) < len(running):
             return None
-        return (sum(guesses) + sum(max(g - spent, 0.0) for g, spent in running)) / self.jobs
+        return (sum(known) + sum(max(g - spent, 0.0) for g, spent in known_running)) / self.jobs
 
     def show(self) -> None:
         with self.lock:
@@ -249,7 +252,7 @@ def reproduce(
     settings = _settings_file(out, quick)
     data = Path(data) if data else (out / "data" if quick else Path("data"))
     started, began = time.perf_counter(), time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
-    sizes = {k: QUICK[k] for k in ("n_train", "n_val", "n_test", "frames")} if quick else {}
+    sizes: dict[str, Any] = {k: QUICK[k] for k in ("n_train", "n_val", "n_test", "frames")} if quick else {}
     for task in tasks:
         generate_dataset(task, data, progress=False, echo=echo, **sizes)
     cells = plan(out, tasks, models, seeds)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 import torch
@@ -22,6 +23,10 @@ from diffcontact.eval.pose_metrics import box_toss_metrics
 from diffcontact.eval.rollouts import predict
 from diffcontact.files import save_arrays, versions, write_json
 from diffcontact.systems.poses import points_to_pose
+
+if TYPE_CHECKING:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from mpl_toolkits.mplot3d import Axes3D
 
 SHOWN_TOSSES = 4  # test tosses drawn in the figure and the GIF
 
@@ -45,7 +50,7 @@ def recorded_tosses(folder: str | Path, split: str = "test") -> tuple[Tosses, di
     return tosses.subset(index), request
 
 
-def predict_tosses(net: nn.Module, folder: str | Path, split: str = "test") -> dict[str, np.ndarray]:
+def predict_tosses(net: nn.Module, folder: str | Path, split: str = "test") -> dict[str, Any]:
     """Roll ``net`` (x0, v0, frames) -> (x, v) out over every toss of ``split`` from its first recorded state (as the
     importer makes states: ``tosses_to_points``) and return the predicted poses in the source's frame: position
     (F, 3) m, quaternion (F, 4) w first, offsets, toss_id (one predicted frame per recorded frame), and ``diverged``
@@ -97,7 +102,7 @@ def evaluate_tosses(
     out: str | Path,
     split: str = "test",
     pictures: bool = True,
-    on_solver_failure: str = "raise",
+    on_solver_failure: Literal["raise", "count"] = "raise",
     **record,
 ) -> dict:
     """Predict and score every toss of ``split`` and write ``out``/metrics.json, predictions.npz, a figure of
@@ -201,7 +206,7 @@ def toss_gif(
     for t in range(0, T, every):
         fig = plt.figure(figsize=(2.4 * shown, 2.6), dpi=70)
         for i, (rec, pre) in enumerate(boxes):
-            ax = fig.add_subplot(1, shown, i + 1, projection="3d")
+            ax = cast("Axes3D", fig.add_subplot(1, shown, i + 1, projection="3d"))
             k = min(t, len(rec) - 1)
             for box, color in ((rec[k], "k"), (pre[k], "tab:red")):
                 for a, b in _EDGES:
@@ -213,9 +218,9 @@ def toss_gif(
             ax.set_title(f"toss {int(tosses.toss_id[i])}", fontsize=8)
             ax.set_xticks([])
             ax.set_yticks([])
-            ax.set_zticks([])
+            ax.zaxis.set_ticks([])
         fig.tight_layout()
         fig.canvas.draw()
-        images.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+        images.append(np.asarray(cast("FigureCanvasAgg", fig.canvas).buffer_rgba())[..., :3].copy())
         plt.close(fig)
     return save_gif(path, images, every * tosses.dt)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m diffcontact.eval.worker", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m diffcontact.eval.worker", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("task")
     p.add_argument("model")
     p.add_argument("seed", type=int)

@@ -8,6 +8,8 @@ ground truth and the model are the same code.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
@@ -16,6 +18,9 @@ from diffcontact.models.params import LearnedParams
 from diffcontact.simulator import Simulator, simulator_for
 from diffcontact.solver.contact_solver import ContactSolver
 from diffcontact.state import Params, State
+
+if TYPE_CHECKING:
+    from diffcontact.models.baselines import Baseline
 
 CMR_REG = 0.01
 MODEL_NAMES = {
@@ -29,7 +34,7 @@ MODEL_NAMES = {
 class ContactModelNet(nn.Module):
     """A learnable simulator: ``forward(x0, v0, frames)`` -> predicted x, v (B, frames, P, d) from frame 0."""
 
-    def __init__(self, simulator: Simulator, params: LearnedParams, dt: float, name: str):
+    def __init__(self, simulator: Simulator, params: LearnedParams | KnownParams, dt: float, name: str):
         super().__init__()
         self.simulator, self.params, self.dt, self.name = simulator, params, dt, name
 
@@ -67,7 +72,7 @@ def build_model(
     reg: float | None = None,
     potential: str = "mlp",
     moments_init: float = 1.0,
-) -> nn.Module:
+) -> ContactModelNet | Baseline:
     """One of :data:`MODEL_NAMES` for a Task (from :func:`diffcontact.build_task`), float64 parameters; or one of the
     baselines' ``BASELINE_NAMES`` (:func:`diffcontact.models.baselines.build_baseline`: hidden, layers, seed apply).
 

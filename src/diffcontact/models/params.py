@@ -18,6 +18,8 @@ Structure stays known (bodies, constraints, contact geometry); the values are le
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import cast
 
 import torch
 from torch import nn
@@ -65,7 +67,8 @@ class MLPPotential(nn.Module, ForcePotential):
 
         Equal to autograd's gradient up to rounding (Softplus' slope above its threshold, 20, is 1 there and the
         sigmoid here, within 2e-9); the output bias and the last activation are not needed."""
-        linears = self.net[::2]  # (Linear, Softplus, ..., Linear)
+        # (Linear, Softplus, ..., Linear): a Sequential of the Linear layers, which torch types as any Module
+        linears = cast("Sequence[nn.Linear]", self.net[::2])
         if len(linears) == 1:  # (no hidden layer: V is linear)
             return -linears[0].weight.expand(x.shape[0], -1).reshape(x.shape)
         h, slopes = x.flatten(1), []

@@ -43,7 +43,8 @@ def score(
 ) -> dict[str, float]:
     """``box_toss_metrics`` of the engine's rollouts of ``tosses`` plus ``objective``; the rollouts start from the
     first frames of ``starts`` (the same tosses with estimated first states), or of ``tosses``."""
-    return _metrics(tosses, *engine.simulate(starts or tosses, params, table_height), table_height)
+    position, quaternion = engine.simulate(starts or tosses, params, table_height)
+    return _metrics(tosses, position, quaternion, table_height)
 
 
 def _metrics(tosses: Tosses, position: np.ndarray, quaternion: np.ndarray, table_height: float) -> dict[str, float]:

@@ -11,9 +11,12 @@ the table frame, angular velocity in the BODY frame): the tosses' ω (body frame
 
 from __future__ import annotations
 
-import mujoco
+from typing import cast
+
 import numpy as np
-from mujoco import rollout
+
+# (MuJoCo's API lives in compiled modules without type stubs, so a type checker cannot see these names)
+from mujoco import MjData, MjModel, mj_getState, mj_resetData, mj_stateSize, mjtState, rollout  # pyright: ignore[reportAttributeAccessIssue]
 
 from diffcontact.data.tosses import Tosses
 from diffcontact.peers.cube import (
@@ -38,10 +41,10 @@ PARAMETERS = (
     Param("dmax", 0.0001, 0.9999, log=False, nominal=0.95),
     Param("width", 1e-4, 0.05, log=True, nominal=0.001, unit="m"),
 )
-_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS  # time, qpos (7), qvel (6): columns 1-3 centre, 4-7 quaternion
+_STATE = mjtState.mjSTATE_FULLPHYSICS  # time, qpos (7), qvel (6): columns 1-3 centre, 4-7 quaternion
 
 
-def _model(table_height: float, dt: float, params: dict[str, float]) -> mujoco.MjModel:
+def _model(table_height: float, dt: float, params: dict[str, float]) -> MjModel:
     h, inertia = HALF_EXTENT, INERTIA
     xml = f"""<mujoco>
   <option timestep="{dt / SUBSTEPS!r}" gravity="0 0 {-GRAVITY!r}"/>
@@ -54,7 +57,7 @@ def _model(table_height: float, dt: float, params: dict[str, float]) -> mujoco.M
     </body>
   </worldbody>
 </mujoco>"""
-    model = mujoco.MjModel.from_xml_string(xml)
+    model = MjModel.from_xml_string(xml)
     model.geom_friction[:, 0] = params["friction"]
     model.geom_solref[:] = (params["timeconst"], params["dampratio"])
     model.geom_solimp[:, :3] = (params["dmin"], params["dmax"], params["width"])
@@ -67,20 +70,21 @@ def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> t
     given; table_height: the table plane's z in m."""
     check_params(params, PARAMETERS, ENGINE)
     model = _model(table_height, tosses.dt, params)
-    data = mujoco.MjData(model)
-    size = mujoco.mj_stateSize(model, _STATE)
+    data = MjData(model)
+    size = mj_stateSize(model, _STATE)
 
     def run_group(index: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
         start = np.zeros((len(index), size))
         for j, i in enumerate(index):
             f = int(tosses.offsets[i])
-            mujoco.mj_resetData(model, data)
+            mj_resetData(model, data)
             data.qpos[:] = np.concatenate([tosses.position[f], tosses.quaternion[f]])
             data.qvel[:] = np.concatenate([tosses.velocity[f], tosses.omega[f]])
-            mujoco.mj_getState(model, data, start[j], _STATE)
+            mj_getState(model, data, start[j], _STATE)
         states = start[:, None]
         if frames > 1:
             out, _ = rollout.rollout(model, data, start, nstep=(frames - 1) * SUBSTEPS)
+            out = cast(np.ndarray, out)  # (the states (B, nstep, size): mujoco types them as any array-like or None)
             states = np.concatenate([states, out[:, SUBSTEPS - 1 :: SUBSTEPS]], axis=1)
         return states[..., 1:4], states[..., 4:8]
 

@@ -192,8 +192,8 @@ class FlatProjection(torch.autograd.Function):
         return At, qt, PiN, a["consistent"], a["ref"]
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, gA, gq, gPi, *_):  # noqa: D102
+    @torch.autograd.function.once_differentiable  # (which torch types as making ctx positional-only)
+    def backward(ctx, gA, gq, gPi, *_):  # noqa: D102  # pyright: ignore[reportIncompatibleMethodOverride]
         q, used, V, evals, null, PiN, N, consistent = ctx.saved_tensors
         mask = used[:, :, None] & used[:, None, :]
         k = consistent.to(q.dtype)[:, None, None]

@@ -61,8 +61,8 @@ class ImplicitConeQP(torch.autograd.Function):
         return _as_dtype(torch.from_numpy(scaling.unscale(sol.gamma, sol.T, sol.z)), A.dtype)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_f):  # noqa: D102
+    @torch.autograd.function.once_differentiable  # (which torch types as making ctx positional-only)
+    def backward(ctx, grad_f):  # noqa: D102  # pyright: ignore[reportIncompatibleMethodOverride]
         sol: ScaledSolution = ctx.sol
         res = sol.result
         d = res.d
@@ -97,8 +97,10 @@ def _adjoint_lstsq(res: IPMResult, g: np.ndarray, sel: np.ndarray) -> tuple[np.n
     d = res.d
     n, K = g.shape[-1], res.on.shape[-1]
     P = lanes.scaled_matrix(np.ascontiguousarray(res.A[sel]), np.ascontiguousarray(res.T[sel]))
-    parts = [P] + [np.ascontiguousarray(t[sel]) for t in (res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)]
-    Kmat = exact.kkt_matrix_batch(*parts, contact_dims(d), True)
+    s_l, lam_l, s_q, lam_q, on, on_l = (
+        np.ascontiguousarray(t[sel]) for t in (res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)
+    )
+    Kmat = exact.kkt_matrix_batch(P, s_l, lam_l, s_q, lam_q, on, on_l, contact_dims(d), True)
     rhs = np.zeros(Kmat.shape[:2])
     rhs[:, :n] = g[sel]
     # The least-squares solution of least norm, by the pseudo-inverse with LAPACK's default cut-off of singular

@@ -28,6 +28,7 @@ import functools
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
+from typing import overload
 
 import numba
 import numpy as np
@@ -137,13 +138,17 @@ class _Output:
     """An output of ``IPMResult``: a view of its buffer, made on first access and then kept as an instance attribute
     (a call without gradients reads only z and status; eight views made up front cost 3 µs of a small call)."""
 
-    def __init__(self, i: int, dtype=np.float64):
+    def __init__(self, i: int, dtype: type[np.generic] = np.float64):
         self.i, self.dtype = i, dtype
 
     def __set_name__(self, owner, name: str) -> None:
         self.name = name
 
-    def __get__(self, obj, objtype=None):
+    @overload
+    def __get__(self, obj: None, objtype: type | None = None) -> _Output: ...
+    @overload
+    def __get__(self, obj: IPMResult, objtype: type | None = None) -> np.ndarray: ...
+    def __get__(self, obj: IPMResult | None, objtype: type | None = None) -> _Output | np.ndarray:
         if obj is None:
             return self
         a, b, shape = obj._slices[self.i]

@@ -14,7 +14,7 @@ under them), so they carry no gradient; D carries the gradient with respect to �
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, overload
 
 import numpy as np
 import torch
@@ -177,6 +177,48 @@ def _first(mask, k: int = 10) -> str:
     return str(idx[:k]) + (f" (and {len(idx) - k} more)" if len(idx) > k else "")
 
 
+@overload
+def solve_cone_qp(
+    A: torch.Tensor,
+    q: torch.Tensor,
+    mu: torch.Tensor,
+    lower: torch.Tensor | None = ...,
+    active: torch.Tensor | None = ...,
+    *,
+    tol: float = ...,
+    acceptable_tol: float = ...,
+    max_iter: int = ...,
+    on_failure: Literal["raise", "count"] = ...,
+    return_info: Literal[False] = ...,
+) -> torch.Tensor: ...
+@overload
+def solve_cone_qp(
+    A: torch.Tensor,
+    q: torch.Tensor,
+    mu: torch.Tensor,
+    lower: torch.Tensor | None = ...,
+    active: torch.Tensor | None = ...,
+    *,
+    tol: float = ...,
+    acceptable_tol: float = ...,
+    max_iter: int = ...,
+    on_failure: Literal["raise", "count"] = ...,
+    return_info: Literal[True],
+) -> tuple[torch.Tensor, SolverInfo]: ...
+@overload
+def solve_cone_qp(
+    A: torch.Tensor,
+    q: torch.Tensor,
+    mu: torch.Tensor,
+    lower: torch.Tensor | None = ...,
+    active: torch.Tensor | None = ...,
+    *,
+    tol: float = ...,
+    acceptable_tol: float = ...,
+    max_iter: int = ...,
+    on_failure: Literal["raise", "count"] = ...,
+    return_info: bool = ...,
+) -> torch.Tensor | tuple[torch.Tensor, SolverInfo]: ...
 def solve_cone_qp(
     A: torch.Tensor,
     q: torch.Tensor,
@@ -189,7 +231,7 @@ def solve_cone_qp(
     max_iter: int = POLICY.max_iter,
     on_failure: Literal["raise", "count"] = "raise",
     return_info: bool = False,
-):
+) -> torch.Tensor | tuple[torch.Tensor, SolverInfo]:
     """Solve a batch of contact cone QPs; differentiable by implicit differentiation.
 
     The solver runs on the CPU in float64: the inputs become float64 numpy arrays once, after the shape checks, and
@@ -224,7 +266,8 @@ def solve_cone_qp(
         raise ValueError(f"max_iter = {max_iter!r} is not an integer >= 1")
     device = A.device if isinstance(A, torch.Tensor) else torch.device("cpu")
     if device.type != "cpu":
-        A, q, mu, lower, active = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (A, q, mu, lower, active))
+        A, q, mu = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (A, q, mu))
+        lower, active = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (lower, active))
     d = _check_shapes(A, q, mu, lower, active)
     arrays = _as_arrays(A, q, mu, lower, active)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
@@ -273,7 +316,8 @@ def _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result):
     its cone): above ``acceptable_tol`` it becomes MAX_ITER (zeros).  Returns f."""
     rows = np.flatnonzero(outside.any(-1))
     r = torch.from_numpy(rows)
-    part = [None if t is None else t[r] for t in (A, q, mu, lower, active)]
+    A_r, q_r, mu_r, lower_r, active_r = (None if t is None else t[r] for t in (A, q, mu, lower, active))
+    part = (A_r, q_r, mu_r, lower_r, active_r)
     again, sub, _ = _solve_scaled(*part, d, *opts, sliding=np.ascontiguousarray(outside[rows]))
     A64, q64, mu64, lower64, active64 = _as_arrays(*part)
     usable = np.flatnonzero(sub.status <= _INACCURATE)
@@ -343,6 +387,7 @@ def _solve_scaled(
     # (the answers also checked in unscaled units: optimality.py)
     check = mu_max > optimality.MU_CHECKED
     elements, start_margin, c_try, l_try, gamma_try = np.arange(len(gamma)), START_MARGIN, c, l_hat, gamma
+    stalled = natural = wrong = None  # (attempt 3's, set as it starts)
     for attempt in range(3):
         if attempt == 1:
             if not np.count_nonzero(result.status) and not check:  # (all CONVERGED, the common case)
@@ -370,6 +415,8 @@ def _solve_scaled(
         if attempt > 0:  # keep the better result
             better = out.status[elements] < result.status[elements]
             if attempt == 2:  # (a wrong usable answer: a usable one with a lower natural residual)
+                if natural is None or wrong is None:  # (unreachable)
+                    raise AssertionError("attempt 3 has no natural residuals")
                 better &= ~wrong[elements]
                 again = elements[wrong[elements] & (out.status[elements] <= _INACCURATE)]
                 now = _natural(A64, q64, mu_check, lower64, active64, d, gamma_try, T, out.z, again)
@@ -379,6 +426,8 @@ def _solve_scaled(
             for name in lanes.IPMResult.OUTPUTS:
                 getattr(result, name)[better] = getattr(out, name)[better]
             if attempt == 2:
+                if natural is None or stalled is None:  # (unreachable)
+                    raise AssertionError("attempt 3 has no natural residuals")
                 lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
                 gamma[better] = gamma_try[better]
                 # (answers of stalled elements, every μ: their γ came from an iterate that may have run away along
@@ -529,7 +578,7 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     return torch.where(torch.from_numpy(is_failure(result.status))[:, None], torch.zeros_like(f), f), result
 
 
-def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts):
+def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts: tuple[float, float, int, str]):
     """The minimisers f (B, n) of the consistent elements of ``flats`` (a first solve of the batch (A, q, …), whose
     statuses ``status`` (B,) are updated in place) that lie farther than ``FAR`` times the size of their range part
     from 0, replaced by a second solve with a curvature ``TIKHONOV``·ref on the flat directions.  Returns f.

@@ -17,7 +17,7 @@ from diffcontact.solver.problem import check_problem
 def _require_reference():
     try:
         import cvxpy as cp
-        from cvxpylayers.torch import CvxpyLayer
+        from cvxpylayers.torch.cvxpylayer import CvxpyLayer
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ImportError(
             "the reference contact solver needs the optional extra: pip install 'diffcontact[reference]'"

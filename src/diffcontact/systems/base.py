@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import torch
 
@@ -44,7 +44,7 @@ class NoiseCoordinates(Protocol):
     pendulum's link angles: ``name`` (recorded in the dataset), ``from_cartesian(x, v) -> (q, w)`` and
     ``to_cartesian(q, w) -> (x, v)`` (x, v: (B, P, d); q, w: (B, k)), inverse maps on the constraint manifold."""
 
-    name: str
+    name: ClassVar[str]
 
     def from_cartesian(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
 

@@ -56,8 +56,8 @@ def build_task(task: str | Path | TaskConfig, overrides: dict[str, dict[str, Any
     if kind is None:
         raise ConfigError(f"task.system = {cfg.system!r} is not one of {sorted(SYSTEMS)}")
     check_keys(cfg.raw, {**COMMON_TABLES, **kind.tables}, cfg.system)
-    task = kind.build(cfg)
-    return replace(task, system=replace(task.system, stepping=stepping(cfg)))
+    built = kind.build(cfg)
+    return replace(built, system=replace(built.system, stepping=stepping(cfg)))
 
 
 def stepping(cfg: TaskConfig) -> Stepping:

@@ -17,11 +17,14 @@ import logging
 import time
 import warnings
 from collections import Counter
+from typing import cast
 
 import lightning.pytorch as pl
 import torch
+from lightning.pytorch.core.optimizer import LightningOptimizer
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 
-from diffcontact.models import BASELINE_NAMES, build_model
+from diffcontact.models import BASELINE_NAMES, LearnedParams, build_model
 from diffcontact.solver import ContactSolver, Status
 from diffcontact.solver.status import is_failure
 from diffcontact.systems.registry import build_task
@@ -97,9 +100,27 @@ class ContactLightningModule(pl.LightningModule):
         self.learns_contacts = self.learned is not None and self.learned.n_slots > 0  # (μ and e)
 
     @property
-    def learned(self):
+    def learned(self) -> LearnedParams | None:
         """The net's learned physical parameters (LearnedParams), or None (IN-CP-SP learns none)."""
-        return self.net.params
+        params = self.net.params
+        if params is not None and not isinstance(params, LearnedParams):  # (build_model's nets learn theirs)
+            raise TypeError(f"the net's params are {type(params).__name__}, not LearnedParams")
+        return params
+
+    @property
+    def _params(self) -> LearnedParams:
+        """``learned``, of a model known to learn physical parameters (e.g. ``learns_contacts``)."""
+        params = self.learned
+        if params is None:
+            raise TypeError(f"{self.config.model} learns no physical parameters")
+        return params
+
+    def _optimizer(self) -> LightningOptimizer:
+        """The one optimiser of ``configure_optimizers``."""
+        opt = self.optimizers()
+        if isinstance(opt, list):
+            raise TypeError(f"expected one optimiser, got {len(opt)}")
+        return opt
 
     @property
     def solver_failures_by_status(self) -> Counter[str]:
@@ -145,25 +166,26 @@ class ContactLightningModule(pl.LightningModule):
         if self.training and self.config.mu_l1 and self.learns_contacts:
             # a constant pull of every μ toward 0: where all of a slot's contacts stick the data give μ no gradient
             # (a plateau above the truth), and Adam moves μ down at its full rate until they slide again
-            loss = loss + self.config.mu_l1 * self.learned.mu.sum()
+            loss = loss + self.config.mu_l1 * self._params.mu.sum()
         return loss
 
     def training_step(self, batch, batch_idx: int):
-        opt = self.optimizers()
+        opt = self._optimizer()
         try:
             loss = self.loss(batch)
             failed = None
         except FloatingPointError as err:  # (a non-finite state in the forward pass: this step is skipped)
             self.forward_failures += 1
             failed = err
-            loss = float("nan") * sum(p.sum() for p in self.net.parameters())  # (NaN gradients: skipped everywhere)
+            # (NaN gradients: skipped everywhere; a Tensor, the net having parameters)
+            loss = cast(torch.Tensor, float("nan") * sum(p.sum() for p in self.net.parameters()))
         opt.zero_grad()
         self.manual_backward(loss)
         grads = [p.grad for p in self.net.parameters() if p.grad is not None]
         if all(bool(torch.isfinite(g).all()) for g in grads) and bool(torch.isfinite(loss)):
             opt.step()
             if self.learns_contacts:
-                self.learned.project_()
+                self._params.project_()
         else:  # skipped entirely: no update, no weight decay
             self.skipped_steps += 1
             opt.zero_grad()
@@ -189,12 +211,16 @@ class ContactLightningModule(pl.LightningModule):
 
     def on_train_epoch_end(self) -> None:
         # (the values below are the same on every process of a DDP run: sync_dist averages equal values)
-        self.log("train/lr", self.optimizers().param_groups[0]["lr"], sync_dist=True)  # (the rate this epoch used)
+        self.log("train/lr", self._optimizer().param_groups[0]["lr"], sync_dist=True)  # (the rate this epoch used)
         if self.config.schedule != "constant":  # (manual optimisation: the schedule is stepped here)
-            self.lr_schedulers().step()
+            schedule = self.lr_schedulers()
+            if schedule is None or isinstance(schedule, (list, torch.optim.lr_scheduler.ReduceLROnPlateau)):
+                raise TypeError(f"expected one epoch-wise schedule, got {schedule!r}")
+            schedule.step()
         p = self.learned
         if self.learns_contacts:
-            means = {"learned/mu_mean": p.mu.detach().mean(), "learned/e_mean": p.e.detach().mean()}
+            c = self._params
+            means = {"learned/mu_mean": c.mu.detach().mean(), "learned/e_mean": c.e.detach().mean()}
             self.log_dict(means, prog_bar=True, sync_dist=True)
         totals = self.totals()
         self.log_dict(
@@ -211,17 +237,17 @@ class ContactLightningModule(pl.LightningModule):
 
     def mass_ratio(self) -> torch.Tensor:
         """Learned masses divided by the first body's: (n_bodies,)."""
-        m = self.learned.inertia.masses.detach()
+        m = self._params.inertia.masses.detach()
         return m / m[0]
 
-    def configure_optimizers(self):
+    def configure_optimizers(self) -> torch.optim.AdamW | OptimizerLRSchedulerConfig:
         # e (and μ unless mu_coef_lr is given) at coef_lr × lr: Adam moves a parameter about lr per step, whatever
         # its gradient's size
-        p, hp = self.learned, self.config
+        p, hp = self._params if self.learns_contacts else None, self.config
         mu_coef = hp.coef_lr if hp.mu_coef_lr is None else hp.mu_coef_lr
-        coefs = {id(p.mu_raw), id(p.e_raw)} if self.learns_contacts else set()
+        coefs = {id(p.mu_raw), id(p.e_raw)} if p is not None else set()
         groups = [{"params": [t for t in self.net.parameters() if id(t) not in coefs]}]
-        if self.learns_contacts:
+        if p is not None:
             groups += [
                 {"params": [p.mu_raw], "lr": hp.lr * mu_coef},
                 {"params": [p.e_raw], "lr": hp.lr * hp.coef_lr},

@@ -8,8 +8,14 @@ import time
 from contextlib import nullcontext
 from pathlib import Path
 
+import lightning
 import lightning.pytorch as pl
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+from lightning.pytorch.plugins import TorchCheckpointIO
+from lightning.pytorch.strategies import DDPStrategy
+from lightning.pytorch.utilities import rank_zero_info
 
 from diffcontact.config import load_task
 from diffcontact.data.store import load_meta
@@ -71,7 +77,7 @@ def planned_epochs(epochs: int, min_steps: int, batches_per_epoch: int) -> int:
     return max(epochs, -(-min_steps // max(batches_per_epoch, 1)))
 
 
-class _RunCheckpoint(pl.callbacks.ModelCheckpoint):
+class _RunCheckpoint(ModelCheckpoint):
     """ModelCheckpoint whose record of the best and last checkpoints follows its run directory when the run was
     moved or copied (Lightning's would forget the best score and write last-v1.ckpt)."""
 
@@ -80,20 +86,22 @@ class _RunCheckpoint(pl.callbacks.ModelCheckpoint):
         return "ModelCheckpoint" + super().state_key.removeprefix(type(self).__qualname__)
 
     def load_state_dict(self, state_dict: dict) -> None:
-        old = state_dict.get("dirpath")
-        if old and old != self.dirpath:
+        old, new = state_dict.get("dirpath"), self.dirpath
+        if old and old != new:
+            if new is None:  # (never: _trainer gives the run's checkpoints folder)
+                raise ValueError(f"cannot move the checkpoints of {old}: the checkpoint callback has no dirpath")
 
             def here(path):
-                return str(Path(self.dirpath) / Path(path).name) if path and Path(path).parent == Path(old) else path
+                return str(Path(new) / Path(path).name) if path and Path(path).parent == Path(old) else path
 
-            state_dict = dict(state_dict, dirpath=self.dirpath)
+            state_dict = dict(state_dict, dirpath=new)
             for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
                 state_dict[key] = here(state_dict.get(key))
             state_dict["best_k_models"] = {here(k): v for k, v in state_dict.get("best_k_models", {}).items()}
         super().load_state_dict(state_dict)
 
 
-class _AtomicCheckpointIO(pl.plugins.TorchCheckpointIO):
+class _AtomicCheckpointIO(TorchCheckpointIO):
     """Checkpoints written through ``files.atomic_write`` (a temporary file in the checkpoint folder, fsync,
     rename): a process killed while one is written leaves the previous one whole.  Lightning's own write goes
     through a temporary file in the system's temporary folder, moved by a copy when that is another file system,
@@ -320,9 +328,9 @@ def _record(run: RunDir, config: TrainConfig, accelerator: str, first: bool) -> 
     )
     if first:
         run.path.mkdir(parents=True, exist_ok=True)
-        record = {"args": config.record(), "versions": versions(lightning=pl.__version__), "parallel": parallel}
+        record = {"args": config.record(), "versions": versions(lightning=lightning.__version__), "parallel": parallel}
         write_json(run.config, record)
-    pl.utilities.rank_zero_info(
+    rank_zero_info(
         f"training on {processes} process(es) ({config.devices} device(s) x {config.num_nodes} node(s), "
         f"{accelerator}): batch {config.batch_size} per process, effective batch {parallel['effective_batch']}, "
         f"learning rate {config.lr:g} (not scaled)"
@@ -335,8 +343,8 @@ def _trainer(
     """The run's Lightning trainer (logs, atomic checkpoints every epoch, the best on val/loss) and its checkpoint
     callback."""
     loggers = [
-        pl.loggers.CSVLogger(run.path / "logs", name="csv"),
-        pl.loggers.TensorBoardLogger(run.path / "logs", name="tb"),
+        CSVLogger(run.path / "logs", name="csv"),
+        TensorBoardLogger(run.path / "logs", name="tb"),
     ]
     checkpoints = _RunCheckpoint(
         dirpath=run.checkpoints,
@@ -367,7 +375,7 @@ def _trainer(
         accelerator=accelerator,
         devices=config.devices,
         num_nodes=config.num_nodes,
-        strategy=pl.strategies.DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
+        strategy=DDPStrategy(find_unused_parameters=True) if processes > 1 else "auto",
     )
     return trainer, checkpoints
 
@@ -377,7 +385,7 @@ def _scan_start(module: ContactLightningModule, data: ContactDataModule, config:
     data.setup()
     train = data.splits["train"]
     record = scan_coefficients(module, train.chunk_x, train.chunk_v, config.seed)
-    pl.utilities.rank_zero_info(f"μ and e start at {record['chosen']} (the least loss of a scan)")
+    rank_zero_info(f"μ and e start at {record['chosen']} (the least loss of a scan)")
     if first:
         write_json(run.coef_start, record)
 
@@ -406,14 +414,14 @@ def summarize_run(run: str | Path) -> dict:
     (after an upgrade of the summary); the run's counters and times are kept.  Returns the new summary."""
     from diffcontact.data.store import load_split
 
-    run = RunDir(run)
-    old, args = run.read_learned(), run.read_config()["args"]
-    best = run.best_checkpoint()  # (in the run's own folder if it was moved)
+    run_dir = RunDir(run)
+    old, args = run_dir.read_learned(), run_dir.read_config()["args"]
+    best = run_dir.best_checkpoint()  # (in the run's own folder if it was moved)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
     config = chosen.task.config
     train = load_split(Path(args["data_root"]) / config.name, "train", config)
     fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
     summary = {**fresh, **kept}
-    write_json(run.learned, summary)
+    write_json(run_dir.learned, summary)
     return summary

@@ -17,6 +17,8 @@ J_k → s·(J_k + r_k²) − r_k², r_k the joint-to-centre offset's component a
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from diffcontact.dynamics.inertia import body_blocks, dense
@@ -100,7 +102,7 @@ def inertia_spread(system: System, learned: Inertia, true: Inertia, x: torch.Ten
 def compare(learned: torch.Tensor, true: torch.Tensor, identifiable: torch.Tensor | None = None) -> dict:
     """``{"learned", "true", "max_abs_error"[, "identifiable"]}``: the error over the identifiable entries (None
     where there is none)."""
-    out = {"learned": learned.tolist(), "true": true.tolist()}
+    out: dict[str, Any] = {"learned": learned.tolist(), "true": true.tolist()}
     err = (learned - true).abs()
     if identifiable is not None:
         err = err[identifiable]
@@ -133,7 +135,7 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> 
         seen_e, seen_mu = seen_e.any().expand(n_slots), seen_mu.any().expand(n_slots)
     m_true = truth.inertia.masses.double()
     m_learned = learned.inertia.masses.detach().double()
-    out = {
+    out: dict[str, Any] = {
         "mu": compare(learned.mu.detach().double(), truth.mu.double(), seen_mu),
         "e": compare(learned.e.detach().double(), truth.e.double(), seen_e),
         "mass_ratio": compare(m_learned / m_learned[0], m_true / m_true[0]),

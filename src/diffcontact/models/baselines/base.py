@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
 from diffcontact.state import State
+
+if TYPE_CHECKING:
+    from diffcontact.models.params import LearnedParams
 
 
 def mlp(sizes: list[int], generator: torch.Generator, activation: type[nn.Module] = nn.ReLU) -> nn.Sequential:
@@ -42,7 +47,7 @@ class Baseline(nn.Module):
 
     name: str
     dt: float
-    params: nn.Module | None
+    params: LearnedParams | None
 
     def step(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """One frame: (x, v) (B, P, d) at t -> at t + dt."""

@@ -16,6 +16,8 @@ One step, batched over samples and relations (static object weights, no loop):
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 from torch import nn
 
@@ -35,6 +37,12 @@ SIZES = {  # (relational hidden, relational layers, effect, object hidden), the 
 class InteractionNetwork(nn.Module):
     """φ_R and φ_O over a fixed :class:`RelationGraph` (its weights and relation attributes held as buffers)."""
 
+    recv: torch.Tensor  # (the buffers registered in __init__)
+    send: torch.Tensor
+    static: torch.Tensor
+    radius: torch.Tensor
+    rel_attr: torch.Tensor
+
     def __init__(self, graph: RelationGraph, rel_attr: torch.Tensor, d: int, sizes: tuple, generator):
         super().__init__()
         rel_hidden, rel_layers, effect, obj_hidden = sizes
@@ -52,7 +60,8 @@ class InteractionNetwork(nn.Module):
     @property
     def input_sizes(self) -> tuple[int, int]:
         """(relation input, object input) widths."""
-        return self.relational[0].in_features, self.object[0].in_features
+        # (the first layers are nn.Linear: ``mlp``; torch types an indexed Sequential as any Module)
+        return cast(nn.Linear, self.relational[0]).in_features, cast(nn.Linear, self.object[0]).in_features
 
     def forward(self, x: torch.Tensor, v: torch.Tensor, inv_inertia: torch.Tensor, force: torch.Tensor) -> torch.Tensor:
         """Per-point output (B, P, d) from x, v (B, P, d), inverse inertia (P,) and external force (B, P, d)."""
@@ -80,6 +89,9 @@ class InteractionNetwork(nn.Module):
 class InteractionNetSP(Baseline):
     """IN-CP-SP: v' = IN(x, v), x' = x + v dt, given the true inverse inertia (P,), gravity force (P, d)."""
 
+    inv_inertia: torch.Tensor  # (the buffers registered in __init__)
+    gravity: torch.Tensor
+
     def __init__(self, graph: RelationGraph, rel_attr, inv_inertia, gravity_force, d: int, dt: float, generator):
         super().__init__()
         self.name, self.dt, self.params = "IN-CP-SP", dt, None
@@ -103,6 +115,8 @@ class InteractionNetCLNN(Baseline):
         self.net = InteractionNetwork(graph, rel_attr, simulator.system.d, SIZES["IN-CP-CLNN"], generator)
 
     def step(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.params is None:
+            raise TypeError(f"{self.name} has no learned CLNN parameters")
         p = self.params()
         x1, v1 = self.simulator.flow(p, x, v, self.dt)
         inv = point_inverse_inertia(p.inertia.masses, p.inertia.moments)

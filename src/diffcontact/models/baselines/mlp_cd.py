@@ -25,6 +25,8 @@ class MLPCollisionCLNN(Baseline):
         self.jump = mlp([2 * D] + [hidden] * layers + [D], generator).to(torch.float64)
 
     def step(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.params is None:
+            raise TypeError(f"{self.name} has no learned CLNN parameters")
         x1, v1 = self.simulator.flow(self.params(), x, v, self.dt)
         with torch.no_grad():
             hit = (self.simulator.system.detector.gaps(x1) < 0).any(dim=1)  # (B,)
