@@ -242,14 +242,7 @@ def train_run(
 
     Returns the learned summary (on the other processes of a DDP run: the same, not written).
     """
-    if accelerator not in ACCELERATORS:
-        raise ConfigError(
-            f"accelerator = {accelerator!r} is not one of {list(ACCELERATORS)}: the systems and the contact model keep "
-            "their constant tensors on the CPU, and no run on a GPU has been made"
-        )
-    for key, value in (("devices", devices), ("num_nodes", num_nodes)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-            raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
+    _check_launch(accelerator, devices, num_nodes)
     quiet_lightning()
     given = dict(
         seed=seed, batch_size=batch_size, lr=lr, schedule=schedule, weight_decay=weight_decay,
@@ -261,16 +254,8 @@ def train_run(
     first = _rank(devices or 1) == 0  # (the process that writes: the only one before a DDP launch)
     with output_lock(run.path) if first else nullcontext():  # (one command at a time writes a run)
         config, done = _settings(run, task, model, preset, epochs, given, resume)
-        data = ContactDataModule(
-            config.task,
-            root=config.data_root,
-            batch_size=config.batch_size,
-            mode="pairs" if config.model in BASELINE_NAMES else "chunks",  # (the baselines train on one-step pairs)
-            dtype=getattr(torch, config.dtype),
-            seed=config.seed,
-        )
-        processes = config.processes
-        max_epochs = planned_epochs(config.epochs, config.min_steps, data.batches_per_epoch(processes))
+        data = _data(config)
+        max_epochs = planned_epochs(config.epochs, config.min_steps, data.batches_per_epoch(config.processes))
         if resume and max_epochs < done:
             raise ConfigError(
                 f"--resume: epochs = {config.epochs} (planned: {max_epochs}) is fewer than the {done} epochs the run "
@@ -285,18 +270,48 @@ def train_run(
         if start is None and config.coef_start == "scan" and config.model in MODEL_NAMES:
             _scan_start(module, data, config, run, first)
         trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
-        totals = module.totals()  # (summed over the processes: every process calls it)
-        best = checkpoints.best_model_path  # (in this run's folder, also when it was moved: _RunCheckpoint)
-        if trainer.world_size > 1:
-            best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
-        chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
-        summary = _summary(chosen, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
+        summary = _finished(run, module, trainer, checkpoints.best_model_path, data, config.processes)
         summary["wall_time_s"] = module.seconds_before + time.perf_counter() - started  # (over all sessions)
         summary["run_dir"] = str(run.path)
         if trainer.is_global_zero:
             write_json(run.learned, summary)
             plot_losses(run.path / "logs" / "csv", run.path / "loss.png")
         return summary
+
+
+def _check_launch(accelerator: str, devices: int | None, num_nodes: int | None) -> None:
+    """ConfigError for an accelerator other than the CPU, or process counts that are not integers >= 1."""
+    if accelerator not in ACCELERATORS:
+        raise ConfigError(
+            f"accelerator = {accelerator!r} is not one of {list(ACCELERATORS)}: the systems and the contact model keep "
+            "their constant tensors on the CPU, and no run on a GPU has been made"
+        )
+    for key, value in (("devices", devices), ("num_nodes", num_nodes)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
+
+
+def _data(config: TrainConfig) -> ContactDataModule:
+    """The run's dataset: 5-frame chunks, or one-step pairs for the baselines."""
+    return ContactDataModule(
+        config.task,
+        root=config.data_root,
+        batch_size=config.batch_size,
+        mode="pairs" if config.model in BASELINE_NAMES else "chunks",
+        dtype=getattr(torch, config.dtype),
+        seed=config.seed,
+    )
+
+
+def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, processes: int) -> dict:
+    """The summary of a fitted run: what its best checkpoint learned (``_summary``), the checkpoint and the
+    counters summed over the processes (every process calls this)."""
+    totals = module.totals()
+    if trainer.world_size > 1:
+        best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
+    # (the best checkpoint is in this run's folder, also when the folder was moved: _RunCheckpoint)
+    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
+    return _summary(chosen, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
 
 
 def _settings(
