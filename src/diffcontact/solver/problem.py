@@ -205,20 +205,6 @@ def solve_cone_qp(
     on_failure: Literal["raise", "count"] = ...,
     return_info: Literal[True],
 ) -> tuple[torch.Tensor, SolverInfo]: ...
-@overload
-def solve_cone_qp(
-    A: torch.Tensor,
-    q: torch.Tensor,
-    mu: torch.Tensor,
-    lower: torch.Tensor | None = ...,
-    active: torch.Tensor | None = ...,
-    *,
-    tol: float = ...,
-    acceptable_tol: float = ...,
-    max_iter: int = ...,
-    on_failure: Literal["raise", "count"] = ...,
-    return_info: bool = ...,
-) -> torch.Tensor | tuple[torch.Tensor, SolverInfo]: ...
 def solve_cone_qp(
     A: torch.Tensor,
     q: torch.Tensor,
