@@ -9,8 +9,9 @@ import torch
 
 from diffcontact.dynamics.inertia import apply_blocks, body_blocks, dense
 from diffcontact.dynamics.lagrangian import potential_force
+from diffcontact.errors import ConfigError
 from diffcontact.models import build_model
-from diffcontact.models.params import MLPPotential
+from diffcontact.models.params import LinkedPotential, MLPPotential
 from diffcontact.state import ForcePotential, Inertia, Params
 from diffcontact.systems import build_task
 
@@ -48,6 +49,32 @@ def test_mlp_force_without_hidden_layers_is_constant():
     pot = MLPPotential(6, 16, 0, generator=torch.Generator().manual_seed(0)).double()
     x = torch.randn(4, 3, 2, dtype=torch.float64)
     assert torch.allclose(pot.force(x), _autograd_force(pot, x), rtol=0, atol=TOL)
+
+
+def test_linked_force_equals_autograd_gradient_and_its_derivatives():
+    """The rope's learned potential (the network plus one of each link's stretch, the first link to the anchor):
+    its written-out force against autograd's, and the force's gradients with respect to x and the weights."""
+    task = build_task("Rope")
+    gen = torch.Generator().manual_seed(2)
+    pot = LinkedPotential(20, task.system.links, 16, 2, generator=gen).double()
+    x = task.sample(4, seed=2).x  # (links at their rest length: stretch 0)
+    x = (x + 0.003 * torch.randn(x.shape, generator=gen, dtype=torch.float64)).requires_grad_(True)
+    w = torch.randn(4, 10, 2, generator=gen, dtype=torch.float64)
+    fast, slow = pot.force(x), _autograd_force(pot, x)
+    assert torch.allclose(fast, slow, rtol=0, atol=TOL)
+    assert fast[:, 0].abs().max() > 0 and (fast - pot.body.force(x)).abs().max() > 1.0  # (the links' term acts)
+    params = [p for p in pot.parameters() if p is not pot.body.net[-1].bias and p is not pot.pair.net[-1].bias]
+    ga = torch.autograd.grad((fast * w).sum(), [x, *params])
+    gb = torch.autograd.grad((slow * w).sum(), [x, *params])
+    for a, b in zip(ga, gb):
+        assert torch.allclose(a, b, rtol=0, atol=1e-10)
+
+
+def test_linked_potential_needs_a_system_with_links():
+    with pytest.raises(ConfigError, match="linked.*links"):
+        build_model(build_task("BP5-e"), "CM-CD-CLNN", potential="linked", hidden=8)
+    net = build_model(build_task("Rope"), "CM-CD-CLNN", potential="linked", hidden=8)
+    assert isinstance(net.params.potential, LinkedPotential)
 
 
 def test_apply_blocks_point_masses_equal_the_dense_mass_matrix():

@@ -79,8 +79,9 @@ def build_model(
     ``solver`` (a :class:`~diffcontact.solver.ContactSolver`; default: one that raises on failure) solves the
     contact problems, e.g. ``ContactSolver(on_failure="count")`` to continue and count failures.  ``reg``
     replaces a CMr model's regularisation of the effective mass (A + reg·I, 1/kg; default ``CMR_REG``, the
-    paper's).  ``potential``: "mlp" (the paper's learned network), "gravity" (uniform gravity along −z, −y in 2-D,
-    of a learned strength g) or "known" (the task's own, not learned); ``moments_init``: the scale (m² per unit
+    paper's).  ``potential``: "mlp" (the paper's learned network), "linked" (that network plus a learned potential of
+    each link's stretch, for a system with links: the rope), "gravity" (uniform gravity along −z, −y in 2-D, of a
+    learned strength g) or "known" (the task's own, not learned); ``moments_init``: the scale (m² per unit
     mass) around which the learned second moments start (about the square of the bodies' size).
     """
     from diffcontact.models.baselines import BASELINE_NAMES, build_baseline
@@ -118,5 +119,6 @@ def build_model(
         points_per_body=system.points_per_body,
         moments_init=moments_init,
         known_potential=task.params.potential if potential == "known" else None,
+        links=system.links,
     )
     return ContactModelNet(sim, params, task.dt, name)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import nn
@@ -27,13 +27,17 @@ from torch import nn
 from diffcontact.errors import ConfigError
 from diffcontact.state import ForcePotential, Inertia, Params
 
+if TYPE_CHECKING:
+    from diffcontact.systems.base import Links
+
 
 def _identity(x: torch.Tensor) -> torch.Tensor:
     return x
 
 
-# the potential: the paper's learned network, gravity of a learned strength, or the task's own (known, not learned)
-POTENTIALS = ("mlp", "gravity", "known")
+# the potential: the paper's learned network, that network plus a learned potential of each link's stretch (systems
+# with links: the rope), gravity of a learned strength, or the task's own (known, not learned)
+POTENTIALS = ("mlp", "linked", "gravity", "known")
 MU_TRANSFORMS = {"projected": _identity, "relu": torch.relu, "softplus": nn.functional.softplus}
 E_TRANSFORMS = {"projected": _identity, "hardsigmoid": nn.functional.hardsigmoid, "sigmoid": torch.sigmoid}
 
@@ -83,6 +87,36 @@ class MLPPotential(nn.Module, ForcePotential):
         return -(g @ linears[0].weight).reshape(x.shape)
 
 
+class LinkedPotential(nn.Module, ForcePotential):
+    """V(x) = MLP(x) + Σ_links φ(s_l): the paper's network over every position (:class:`MLPPotential`) plus one
+    small network φ shared by the links, of each link's stretch s = (|x_i − x_j| − rest) / spread (``Links``).
+
+    The second term carries what the first learns slowly: a spring's force changes by its whole size over a stretch
+    of a few mm, and the rope's first link pulls toward a fixed anchor (docs/notes/2026-11-28-rope-error-floor.md).
+    Its force (:meth:`force`) is written out like the network's."""
+
+    def __init__(
+        self, n_inputs: int, links: Links, hidden: int = 256, layers: int = 3, generator: torch.Generator | None = None
+    ):
+        super().__init__()
+        self.body = MLPPotential(n_inputs, hidden, layers, generator=generator)
+        self.pair = MLPPotential(1, 64, 2, generator=generator)  # (drawn after the network: its start is the same)
+        self.links = links
+
+    def forward(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+        s, _ = self.links.stretch(x)
+        return self.body(x) + self.pair(s.reshape(-1, 1, 1)).reshape(s.shape).sum(-1)
+
+    def force(self, x: torch.Tensor) -> torch.Tensor:
+        """−∇V(x) (B, P, d): the network's, plus −φ'(s) u / spread on each link's point i and its opposite on j."""
+        s, u = self.links.stretch(x)
+        B, P = x.shape[:2]
+        pull = (self.pair.force(s.reshape(-1, 1, 1)).reshape(s.shape) / self.links.spread.to(x))[..., None] * u
+        ext = x.new_zeros(B, P + self.links.anchors.shape[0], x.shape[-1])
+        ext = ext.index_add(1, self.links.i.to(x.device), pull).index_add(1, self.links.j.to(x.device), -pull)
+        return self.body.force(x) + ext[:, :P]
+
+
 class LearnedGravity(nn.Module):
     """V = g Σ_b m_b (c_b · up) with a learned strength g = exp(log_g) (m/s²), up the last axis (z in 3-D, y in
     2-D); the centre of each body is its first point (``stride`` points per body).  g starts at 9.81·exp(0.1·N(0, 1)).
@@ -107,7 +141,8 @@ class LearnedParams(nn.Module):
 
     n_moments: moments per body (0 for point masses, d for extended bodies); n_points·d: potential input size;
     n_slots: contact slots; homogeneous: one (μ, e) for all slots; potential: one of ``POTENTIALS`` (gravity: along
-    the last axis, each body's centre its first of ``points_per_body`` points; known: ``known_potential``, fixed).
+    the last axis, each body's centre its first of ``points_per_body`` points; known: ``known_potential``, fixed;
+    linked: the network plus a potential of each link's stretch, for a system with ``links``).
     ``forward()`` returns Params.
     """
 
@@ -130,6 +165,7 @@ class LearnedParams(nn.Module):
         points_per_body: int = 1,
         moments_init: float = 1.0,
         known_potential=None,
+        links: Links | None = None,
     ):
         super().__init__()
         if potential not in POTENTIALS:
@@ -154,6 +190,10 @@ class LearnedParams(nn.Module):
         self.e_raw = nn.Parameter(0.2 + 0.6 * torch.sigmoid(e_raw) if e_transform == "projected" else e_raw)
         if potential == "mlp":
             self.potential = MLPPotential(n_points * d, hidden, layers, generator=gen).to(dtype)
+        elif potential == "linked":
+            if links is None:
+                raise ConfigError('potential = "linked" needs a system with links (the rope); this one has none')
+            self.potential = LinkedPotential(n_points * d, links, hidden, layers, generator=gen).to(dtype)
         elif potential == "gravity":
             self.potential = LearnedGravity(points_per_body, generator=gen, dtype=dtype)
         else:

@@ -51,6 +51,27 @@ class NoiseCoordinates(Protocol):
     def to_cartesian(self, q: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
 
 
+@dataclass(frozen=True, eq=False)
+class Links:
+    """Pairs of points joined by a link of known rest length (the rope's segments): ``i``, ``j`` (L,) extended
+    point indices (>= P: the rows of ``anchors`` (n_anchors, d)), ``rest`` (L,) the rest lengths in m and
+    ``spread`` (L,) the stretch in m that a learned link potential takes as its unit (the stretch limit's)."""
+
+    i: torch.Tensor
+    j: torch.Tensor
+    rest: torch.Tensor
+    spread: torch.Tensor
+    anchors: torch.Tensor
+
+    def stretch(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """s = (|x_i − x_j| − rest) / spread (B, L) and the unit vectors (x_i − x_j) / |x_i − x_j| (B, L, d):
+        x (B, P, d) in m."""
+        ext = torch.cat([x, self.anchors.to(x).expand(x.shape[0], -1, -1)], dim=1)
+        delta = ext[:, self.i] - ext[:, self.j]
+        length = delta.norm(dim=-1)
+        return (length - self.rest.to(x)) / self.spread.to(x), delta / length[..., None]
+
+
 @dataclass(eq=False)
 class System:
     """Static structure of a rigid-body system in Cartesian coordinates.
@@ -61,7 +82,7 @@ class System:
     holonomic constraints; ``detector`` holds every contact candidate; ``n_slots`` is the length of μ and e;
     ``stepping`` is the task's default time-stepping scheme (the Simulator may override it);
     ``noise_coordinates``: the coordinates observation noise is drawn in (None: Cartesian, projected back onto the
-    constraints if there are any).
+    constraints if there are any); ``links``: pairs of points joined by a link of known rest length (None: none).
     """
 
     name: str
@@ -75,6 +96,7 @@ class System:
     drawing: Drawing
     stepping: Stepping = Stepping()
     noise_coordinates: NoiseCoordinates | None = None
+    links: Links | None = None
 
     @property
     def n_points(self) -> int:

@@ -17,7 +17,7 @@ from diffcontact.contact.kinds import AngleLimits, StretchLimits
 from diffcontact.dynamics.potentials import Gravity, Springs, SumPotential
 from diffcontact.errors import ConfigError
 from diffcontact.state import Inertia, Params, State
-from diffcontact.systems.base import Drawing, System, Task
+from diffcontact.systems.base import Drawing, Links, System, Task
 from diffcontact.systems.common import F64, coefficients, make_constraints, rejection_sample
 from diffcontact.systems.pendulum import chain_points
 
@@ -82,6 +82,9 @@ def build_rope(cfg: TaskConfig) -> Task:
             plane_offset=torch.zeros(0, dtype=F64),
             shape="ball",
             view=((-1.1 * n * l0, 1.1 * n * l0), (-1.1 * n * l0, 1.1 * n * l0)),
+        ),
+        links=Links(
+            prev, nodes, torch.full((n,), l0, dtype=F64), torch.full((n,), (s_max - 1.0) * l0, dtype=F64), anchors
         ),
     )
     g = cfg.section("potential").number("gravity", 9.81, lo=0.0)

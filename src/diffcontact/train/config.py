@@ -50,7 +50,7 @@ class TrainConfig:
     mu_l1: float = 0.0  # a constant pull of every μ toward 0
     reg: float | None = None
     train_loss: str = "l1"
-    potential: str = "mlp"  # "mlp" (the paper's learned network), "gravity" (a learned g) or "known"
+    potential: str = "mlp"  # "mlp" (the paper's learned network), "linked" (plus one per link), "gravity" or "known"
     velocity_weight: float = 1.0  # of the velocities in the loss, against the positions
     moments_init: float = 1.0  # m² per unit mass: where the learned second moments start (about the bodies' size²)
     axis_scale: float = 1.0  # m: the weight in the loss of an extended body's axis points against its centre
