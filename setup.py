@@ -1,7 +1,7 @@
 """Build of the contact solver's compiled kernel (everything else is in pyproject.toml).
 
 The kernel is the CPython extension module ``diffcontact.solver._lanes`` (``csrc/lanes_module.cpp``; called by
-``solver/lanes.py``)."""
+``solver/kernel.py``)."""
 
 import glob
 

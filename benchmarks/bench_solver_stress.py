@@ -11,7 +11,8 @@ Each batch draws K (1 to 20 contacts, most of them small), d (1, 2 or 3) and one
 
 - ``scaled``: A of random scale 1e-12 … 1e12 (huge or tiny masses), q of its own random scale;
 - ``singular``: A = F Fᵀ of rank below K·d (more contact rows than degrees of freedom), perturbed by ±1e-9·‖A‖ in
-  its null space (PSD up to rounding only), q = F w in its range (a velocity that obeys the joints: solver/flat.py);
+  its null space (PSD up to rounding only), q = F w in its range (a velocity that obeys the joints:
+  solver/least_norm.py);
   checked against the unperturbed A;
 - ``ill``: A with eigenvalues spread over 1e-5 … 1 (near-singular, above the flat threshold 1e-6 of float64);
 - ``infinite_mass``: A = 0 (every body immovable): converged where q pushes the contacts apart, else unbounded;

@@ -1,4 +1,4 @@
-"""How often training meets flat directions (solver/flat.py), and how large q's flat part is there.
+"""How often training meets flat directions (solver/least_norm.py), and how large q's flat part is there.
 
 python investigations/flat_stats.py RUN_DIR [--data data]: replays one epoch of the run's training batches through
 the model of its best checkpoint (and through the initial model of the same seed), and prints per phase the number
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from diffcontact.solver import Status, flat
+from diffcontact.solver import Status, least_norm
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.module import ContactLightningModule
 
@@ -26,7 +26,7 @@ from diffcontact.train.module import ContactLightningModule
 def replay(module: ContactLightningModule, data: ContactDataModule) -> dict:
     stats = {"problems": 0, "flat": 0, "consistent": 0, "ratio_max_consistent": 0.0, "ratio_min_other": None}
     ratios = []
-    analyse = flat._analyse
+    analyse = least_norm._analyse
 
     def recording(A, q, used, tol, mu=None):
         out = analyse(A, q, used, tol, mu)
@@ -44,13 +44,13 @@ def replay(module: ContactLightningModule, data: ContactDataModule) -> dict:
 
     solver = module.net.simulator.contact_model.solver  # (the module's, which counts and continues on failure)
     solver.reset()
-    flat._analyse = recording
+    least_norm._analyse = recording
     try:
         with torch.no_grad():
             for batch in data.train_dataloader():
                 module.loss(batch)
     finally:
-        flat._analyse = analyse
+        least_norm._analyse = analyse
     stats["problems"] = solver.problems
     stats["status"] = {s.name: int(solver.counts[s]) for s in Status}
     if ratios:

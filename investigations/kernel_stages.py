@@ -1,9 +1,9 @@
 """The compiled kernel's stages per problem: python investigations/kernel_stages.py [K d B].
 
-CPU µs per problem (best of 5, one thread) of the interior-point method alone (``lanes.solve`` without polishing),
-of polishing (with it, minus without), of the adjoint solve of the backward pass (``lanes.adjoint``) and of the
-flat-direction test (``flat.flat_elements``), on the scaled instances of ``diffcontact bench solver``.  On a shared
-machine compare two checkouts by alternating runs of this script (docs/solver.md, "Speed").
+CPU µs per problem (best of 5, one thread) of the interior-point method alone (``kernel.solve`` without polishing),
+of polishing (with it, minus without), of the adjoint solve of the backward pass (``kernel.adjoint``) and of the
+flat-direction test (``least_norm.flat_elements``), on the scaled instances of ``diffcontact bench solver``.  On a
+shared machine compare two checkouts by alternating runs of this script (docs/solver.md, "Speed").
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from diffcontact.bench.solver import _instances
-from diffcontact.solver import flat, lanes, problem, scaling
-from diffcontact.solver.exact import contact_dims
+from diffcontact.solver import kernel, least_norm, problem, scaling
+from diffcontact.solver.kkt import contact_dims
 
 
 def _best(call, B: int, runs: int = 5) -> float:
@@ -45,16 +45,16 @@ def main(K: int = 19, d: int = 3, B: int = 400) -> None:
     )
 
     def solve(steps: int):
-        return lanes.solve(A_sym, T, c, l_hat, on_q, on_l, d, **options, polish_steps=steps)
+        return kernel.solve(A_sym, T, c, l_hat, on_q, on_l, d, **options, polish_steps=steps)
 
     ipm = _best(lambda: solve(0), B)
     polish = _best(lambda: solve(problem.POLISH_STEPS), B) - ipm
     res = solve(problem.POLISH_STEPS)
     g = np.random.default_rng(0).standard_normal(res.z.shape)
-    adjoint = _best(lambda: lanes.adjoint(res, g), B)
-    flat_test = _best(lambda: flat.flat_elements(arrays[0], arrays[2], arrays[4], d, 1e-6), B)
+    adjoint = _best(lambda: kernel.adjoint(res, g), B)
+    flat_test = _best(lambda: least_norm.flat_elements(arrays[0], arrays[2], arrays[4], d, 1e-6), B)
     print(
-        f"K = {K}, d = {d}, B = {B}, {lanes.current_width()} lanes: CPU µs per problem: interior-point method "
+        f"K = {K}, d = {d}, B = {B}, {kernel.current_width()} lanes: CPU µs per problem: interior-point method "
         f"{ipm:.1f}, polishing {polish:.1f}, adjoint solve {adjoint:.1f}, flat-direction test {flat_test:.1f} "
         f"(iterations: mean {res.iterations.mean():.2f})"
     )

@@ -23,7 +23,7 @@ def _live_tensors() -> int:
 
 def test_the_flat_projection_frees_its_outputs():
     """Outputs of FlatProjection (with a graph) are freed as soon as the caller drops them, without a collection."""
-    from diffcontact.solver.flat import FlatProjection
+    from diffcontact.solver.least_norm import FlatProjection
 
     gen = torch.Generator().manual_seed(0)
     F = torch.randn(3, 4, 2, generator=gen, dtype=torch.float64, requires_grad=True)

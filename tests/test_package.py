@@ -73,7 +73,7 @@ def test_the_wheel_installs_into_a_fresh_venv_and_simulates_from_another_directo
     elsewhere.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DIFFCONTACT_TASKS", "VIRTUAL_ENV")}
     where = _run(
-        [str(python), "-c", "import diffcontact as dc, diffcontact.solver.lanes as k; "
+        [str(python), "-c", "import diffcontact as dc, diffcontact.solver.kernel as k; "
          "print(dc.__file__); print(dc.config.tasks_dir()); print(k._load().__file__)"],
         cwd=elsewhere, env=env,
     ).split()  # fmt: skip

@@ -48,14 +48,14 @@ def test_polishing_damps_newton_steps_that_overshoot():
     (and needed the second pass); with halved steps every element reaches rounding level, and those eleven agree with
     Clarabel."""
     from diffcontact.bench.solver import _instances
-    from diffcontact.solver import lanes, problem, scaling
-    from diffcontact.solver.exact import contact_dims
+    from diffcontact.solver import kernel, problem, scaling
+    from diffcontact.solver.kkt import contact_dims
 
     K, d = 19, 2
     A, q, mu, lower = _instances(torch.Generator().manual_seed(0), 800, K, d)
     arrays = problem._as_arrays(A, q, mu, lower, None)
     A_sym, c, l_hat, T, _, gamma, *_, on_q, on_l, _ = scaling.scale_batch(*arrays, contact_dims(d))
-    res = lanes.solve(
+    res = kernel.solve(
         A_sym, T, c, l_hat, on_q, on_l, d, ipm_tol=problem.IPM_TOL, final_tol=problem.ROUNDING_TOL,
         acceptable_tol=1e-7, max_iter=60, refine_tol=problem.IPM_TOL, start_margin=problem.START_MARGIN,
         polish_steps=6,

@@ -7,8 +7,8 @@ import pytest
 import torch
 from solver_oracle import random_instance
 
-from diffcontact.solver import exact, flat, lanes, scaling, solve_cone_qp
-from diffcontact.solver.exact import contact_dims
+from diffcontact.solver import kernel, kkt, least_norm, scaling, solve_cone_qp
+from diffcontact.solver.kkt import contact_dims
 from diffcontact.solver.problem import _solve_with_retries
 
 
@@ -30,12 +30,12 @@ def test_reduced_adjoint_solve_matches_dense(d):
     n = K * d
     N = n + K + K * d
     g = np.random.default_rng(d).standard_normal((B, n))
-    arrays = [lanes.scaled_matrix(res.A, res.T), res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l]
-    u, v_l, ok = lanes.adjoint(res, g)
+    arrays = [kernel.scaled_matrix(res.A, res.T), res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l]
+    u, v_l, ok = kernel.adjoint(res, g)
     checked = 0
     for b in range(B):
         M = np.empty((N, N))
-        exact._kkt_matrix(*(a[b] for a in arrays), contact_dims(d), False, M)
+        kkt._kkt_matrix(*(a[b] for a in arrays), contact_dims(d), False, M)
         if np.linalg.cond(M) > 1e10:  # (an exactly degenerate element: the weak variant, tested elsewhere)
             continue
         assert ok[b]
@@ -97,7 +97,7 @@ def test_scaling_matches_its_formulas(d):
     got = scaling.scale_batch(A, q, mu, lower, active, contact_dims(d))
     names = ("A", "c", "l_hat", "T", "S", "gamma", "sigma", "lower_scale", "on_q", "on_l", "zero_mu")
     got = dict(zip(names, got))
-    got["P"] = lanes.scaled_matrix(got["A"], got["T"])  # (as the kernel forms it)
+    got["P"] = kernel.scaled_matrix(got["A"], got["T"])  # (as the kernel forms it)
     ref = _scaling_reference(A, q, mu, lower, active, d)
     for key, value in ref.items():
         if value.dtype == bool:
@@ -125,9 +125,9 @@ def test_without_gradients_the_same_solution(dtype):
 
 @pytest.mark.parametrize("d, K", [(1, 3), (2, 3), (3, 3), (3, 11)])
 def test_flat_test_against_eigenvalues(d, K):
-    """``flat.flat_elements`` (Cholesky on the rows in use, A symmetrised on the fly; in the kernel, by panels of 8
-    columns) against the eigenvalues of the symmetrised A on the rows of ``flat.rows_in_use``, at every lane width
-    this CPU runs (B not a multiple of any); and its flags of finite and of exactly symmetric matrices."""
+    """``least_norm.flat_elements`` (Cholesky on the rows in use, A symmetrised on the fly; in the kernel, by panels
+    of 8 columns) against the eigenvalues of the symmetrised A on the rows of ``least_norm.rows_in_use``, at every
+    lane width this CPU runs (B not a multiple of any); and its flags of finite and of exactly symmetric matrices."""
     gen = torch.Generator().manual_seed(50 + d + K)
     B, tol = 41, 1e-6
     A, q, mu, lower = random_instance(gen, B, K, d)
@@ -137,7 +137,7 @@ def test_flat_test_against_eigenvalues(d, K):
     odd = (torch.arange(B) % 2 == 1)[:, None, None]
     A = torch.where(odd, A + 0.1 * (skew - skew.mT), 0.5 * (A + A.mT))  # odd: not symmetric (symmetric part as above)
     active = torch.rand(B, K, generator=gen) > 0.2
-    used = flat.rows_in_use(mu, active, d).numpy()
+    used = least_norm.rows_in_use(mu, active, d).numpy()
     sym = 0.5 * (A + A.mT).numpy()
     expected = np.zeros(B, dtype=bool)
     for b in range(B):
@@ -146,14 +146,14 @@ def test_flat_test_against_eigenvalues(d, K):
             sub = sym[b][np.ix_(rows, rows)]
             expected[b] = np.linalg.eigvalsh(sub)[0] <= tol * max(sub.diagonal().max(), 0.0)
     assert expected.sum() >= 5 and (~expected).sum() >= 5
-    width = lanes.current_width()
+    width = kernel.current_width()
     try:
-        for w in lanes.supported_widths():
-            lanes.select_width(w)
-            got, finite, symmetric = flat.flat_elements(
+        for w in kernel.supported_widths():
+            kernel.select_width(w)
+            got, finite, symmetric = least_norm.flat_elements(
                 np.ascontiguousarray(A.numpy()), mu.numpy(), active.numpy(), d, tol
             )
             assert (got == expected).all(), f"lane width {w}"
             assert finite.all() and (symmetric == ~odd.flatten().numpy()).all(), f"lane width {w}"
     finally:
-        lanes.select_width(width)
+        kernel.select_width(width)

@@ -134,11 +134,11 @@ def test_gradients_at_huge_mu_pass_gradcheck(decades):
 
 
 def test_float32_gradients_of_a_flat_problem_at_huge_mu_are_finite():
-    """A singular A (rank 1 up to rounding: the flat stage, solver/flat.py) with μ = 1e30 in float32: μ² overflowed
-    in float32 in the least-norm stage and every gradient was NaN; they are now finite and those of A, q and μ agree
-    with the float64 ones.  The one of the lower bound is not compared: the answer's f_n is within 5e-9 of the bound
-    0 at ‖f‖ = 0.49, so whether the bound binds (gradient 2.18) or not (0) is decided at float32 rounding; with the
-    solver of 25c2c41 it disagreed on 14 of the 24 neighbours of these inputs one or two float32 steps away."""
+    """A singular A (rank 1 up to rounding: the flat stage, solver/least_norm.py) with μ = 1e30 in float32: μ²
+    overflowed in float32 in the least-norm stage and every gradient was NaN; they are now finite and those of A, q
+    and μ agree with the float64 ones.  The one of the lower bound is not compared: the answer's f_n is within 5e-9
+    of the bound 0 at ‖f‖ = 0.49, so whether the bound binds (gradient 2.18) or not (0) is decided at float32
+    rounding; an earlier solver disagreed on 14 of the 24 neighbours of these inputs one or two float32 steps away."""
     A = [[0.038206037133932114, 0.06487715244293213], [0.06487715244293213, 0.1101670116186142]]
     q = [0.031850676983594894, 0.054085202515125275]
     grads = {}

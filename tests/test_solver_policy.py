@@ -1,6 +1,6 @@
 """The failure policy and counters of ContactSolver, through the whole solver path (retries included).
 
-A failing kernel status is forced on one batch element by wrapping the compiled kernel's ``lanes.solve`` (the
+A failing kernel status is forced on one batch element by wrapping the compiled kernel's ``kernel.solve`` (the
 well-posed problems of the simulation do not fail, so a genuine MAX_ITER or NUMERICAL cannot be made on demand);
 everything from the retry policy to the autograd Function then runs as it does in the simulation.
 """
@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from diffcontact.errors import ContactSolverError
-from diffcontact.solver import ContactSolver, Status, lanes
+from diffcontact.solver import ContactSolver, Status, kernel
 
 F64 = torch.float64
 
@@ -28,7 +28,7 @@ def _problems(B: int = 5, K: int = 3, d: int = 2) -> tuple[torch.Tensor, torch.T
 def fail_element_1(monkeypatch):
     """Force the kernel's status ``code`` on batch element 1 in every attempt, once the test sets ``code`` (with the
     residual of a failure, inf, as the kernel would pair them)."""
-    real, forced = lanes.solve, {}
+    real, forced = kernel.solve, {}
 
     def solve(*args, out=None, **kw):
         res = real(*args, out=out, **kw)
@@ -37,7 +37,7 @@ def fail_element_1(monkeypatch):
             res.residual[1] = np.inf
         return res
 
-    monkeypatch.setattr(lanes, "solve", solve)
+    monkeypatch.setattr(kernel, "solve", solve)
     return forced
 
 
@@ -90,17 +90,18 @@ def test_every_threshold_is_the_policys_and_docs_solver_md_lists_them_all():
     import re
     from pathlib import Path
 
-    from diffcontact.solver import contact_solver, flat, optimality, problem, scaling, status
+    from diffcontact.solver import contact_solver, least_norm, optimality, problem, scaling, status
     from diffcontact.solver.policy import POLICY
 
     bound = {
         (problem, "IPM_TOL"): "ipm_tol", (problem, "ROUNDING_TOL"): "rounding_tol", (problem, "POLISH_STEPS"):
         "polish_steps", (problem, "START_MARGIN"): "start_margin", (problem, "ROBUST_MARGIN"): "robust_margin",
         (problem, "FAR"): "far", (problem, "TIKHONOV"): "tikhonov", (problem, "MU_CAP"): "mu_cap",
-        (problem, "MU_MAX"): "mu_max", (flat, "Q_TOL"): "q_tol", (flat, "UNIQUE_TOL"): "unique_tol",
-        (flat, "RHO"): "alm_rho", (flat, "RHO_MAX"): "alm_rho_max", (flat, "ALM_STEPS"): "alm_steps",
-        (flat, "ALM_TOL"): "alm_tol", (flat, "ALM_ACCEPT"): "alm_accept", (flat, "ALM_FLOOR"): "alm_floor",
-        (flat, "ALM_FAR"): "alm_far", (flat, "V_ROUNDING"): "v_rounding", (flat, "PROX"): "prox",
+        (problem, "MU_MAX"): "mu_max", (least_norm, "Q_TOL"): "q_tol", (least_norm, "UNIQUE_TOL"): "unique_tol",
+        (least_norm, "RHO"): "alm_rho", (least_norm, "RHO_MAX"): "alm_rho_max", (least_norm, "ALM_STEPS"): "alm_steps",
+        (least_norm, "ALM_TOL"): "alm_tol", (least_norm, "ALM_ACCEPT"): "alm_accept",
+        (least_norm, "ALM_FLOOR"): "alm_floor",
+        (least_norm, "ALM_FAR"): "alm_far", (least_norm, "V_ROUNDING"): "v_rounding", (least_norm, "PROX"): "prox",
         (optimality, "MU_CHECKED"): "mu_checked", (scaling, "MU_FREE"): "mu_free", (status, "WEAK_TOL"): "weak_tol",
     }  # fmt: skip
     for (module, name), field in bound.items():

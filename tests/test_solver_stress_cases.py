@@ -1,4 +1,4 @@
-"""The silent failures of the contact-solver stress run at 9f0987f (``benchmarks/bench_solver_stress.py --total
+"""The silent failures an earlier contact-solver stress run found (``benchmarks/bench_solver_stress.py --total
 1000000``, seed 0): usable answers with μ ≤ 1.5 that were wrong.  Each problem is the one the run drew (call and
 element as the script prints them; ``--calls N`` replays a call), written out here.
 

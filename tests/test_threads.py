@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 
 from diffcontact.cli import app
 from diffcontact.errors import ConfigError
-from diffcontact.solver import lanes
+from diffcontact.solver import kernel
 from diffcontact.threads import (
     JOB_MEMORY,
     available_cpus,
@@ -137,12 +137,12 @@ def test_importing_torch_first_warns_once_and_diffcontact_first_does_not():
 
 def test_set_threads_reaches_torch_numba_and_the_solver_pool(restore_threads):
     calls = []
-    count = 64 * lanes.current_width()
+    count = 64 * kernel.current_width()
     for n in (1, 2):
         assert set_threads(n) == n
         assert torch.get_num_threads() == n and numba.get_num_threads() == min(n, numba.config.NUMBA_NUM_THREADS)
         calls.clear()
-        lanes.parallel(lambda a, b: calls.append((a, b)), count)
+        kernel.parallel(lambda a, b: calls.append((a, b)), count)
         assert len(calls) == numba.get_num_threads()
         assert sorted(calls)[0][0] == 0 and sorted(calls)[-1][1] == count
     with pytest.raises(ConfigError, match="threads = 0 is not an integer >= 1"):

@@ -134,7 +134,7 @@ def test_scheme_switch_and_task_keys():
 def test_ball_in_a_corner_with_friction_gets_the_minimum_norm_impulse():
     """Time of impact, ambiguity (1): a ball hitting two perpendicular walls at once with friction has a singular A
     (4 contact rows, 2 degrees of freedom), so the compression impulse is not unique and the restitution bound
-    e·f_n depends on the minimiser chosen. The solver returns the minimum-norm minimiser (solver/flat.py): checked
+    e·f_n depends on the minimiser chosen. The solver returns the minimum-norm minimiser (solver/least_norm.py): checked
     here against Clarabel's minimum-norm minimiser (tests/solver_oracle.py), in the time-of-impact step."""
     np = pytest.importorskip("numpy")
     pytest.importorskip("cvxpy")

@@ -27,7 +27,7 @@ class ContactSolverError(DiffContactError, RuntimeError):
 
 class IndefiniteMatrixError(DiffContactError, ValueError):
     """The contact solver's A has an eigenvalue below −τ·max diag(A): not positive semidefinite, even up to
-    rounding (``diffcontact.solver.flat``).  The message names the batch elements."""
+    rounding (``diffcontact.solver.least_norm``).  The message names the batch elements."""
 
 
 class DatasetError(DiffContactError, RuntimeError):

@@ -3,7 +3,7 @@
 - :func:`available_cpus`: the CPUs this process may really use: its affinity mask and, if the container limits it,
   the cgroup CPU quota (``/sys/fs/cgroup/cpu.max``, v2; ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us``, v1).
 - :func:`set_threads`: one number for torch's intra-op threads, numba's threads and the solver's thread pool (sized
-  from ``numba.get_num_threads()``, ``solver/lanes.py``).
+  from ``numba.get_num_threads()``, ``solver/kernel.py``).
 - :func:`quiet_waiting_env`: ``OMP_WAIT_POLICY=PASSIVE`` and ``KMP_BLOCKTIME=0`` unless the user set them, so that
   OpenMP workers sleep instead of spinning between parallel regions (spinning workers made a training step 30×
   slower beside two busy processes).  The OpenMP runtime reads them when it is loaded, i.e. at ``import torch``:

@@ -1,4 +1,4 @@
-"""Stress test of the contact solver on effective-mass matrices that are PSD only up to rounding (solver/flat.py):
+"""Stress test of the contact solver on effective-mass matrices that are PSD only up to rounding (solver/least_norm.py):
 singular PSD A of every contact dimension and size the 8 benchmark tasks use, rounded to float32 and perturbed by
 ±1e-7·‖A‖ in their null space, with q in the range of A (as J v for a velocity that obeys the joints)."""
 

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from diffcontact.solver import exact, lanes, scaling
-from diffcontact.solver.exact import contact_dims
-from diffcontact.solver.lanes import IPMResult
+from diffcontact.solver import kernel, kkt, scaling
+from diffcontact.solver.kernel import IPMResult
+from diffcontact.solver.kkt import contact_dims
 
 
 @dataclass
@@ -83,10 +83,10 @@ def _as_dtype(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
 def adjoint_solve(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solve Kᵀ[u; v] = [g; 0] (module docstring); returns u: (B, n) and the rays' v: (B, K).
 
-    Solved in the compiled kernel (``lanes.adjoint``); where K is singular (a degenerate solution: a contact exactly
+    Solved in the compiled kernel (``kernel.adjoint``); where K is singular (a degenerate solution: a contact exactly
     at a stick/slip or touch/separate switch) the dense system is solved by least squares instead.
     """
-    u, v_l, ok = lanes.adjoint(res, g)
+    u, v_l, ok = kernel.adjoint(res, g)
     if np.count_nonzero(ok) < len(ok):
         u[~ok], v_l[~ok] = _adjoint_lstsq(res, g, ~ok)
     return u, v_l
@@ -96,11 +96,11 @@ def _adjoint_lstsq(res: IPMResult, g: np.ndarray, sel: np.ndarray) -> tuple[np.n
     """Least-squares adjoint for the selected (degenerate) elements, weakly active cones taken as inactive."""
     d = res.d
     n, K = g.shape[-1], res.on.shape[-1]
-    P = lanes.scaled_matrix(np.ascontiguousarray(res.A[sel]), np.ascontiguousarray(res.T[sel]))
+    P = kernel.scaled_matrix(np.ascontiguousarray(res.A[sel]), np.ascontiguousarray(res.T[sel]))
     s_l, lam_l, s_q, lam_q, on, on_l = (
         np.ascontiguousarray(t[sel]) for t in (res.s_l, res.lam_l, res.s_q, res.lam_q, res.on, res.on_l)
     )
-    Kmat = exact.kkt_matrix_batch(P, s_l, lam_l, s_q, lam_q, on, on_l, contact_dims(d), True)
+    Kmat = kkt.kkt_matrix_batch(P, s_l, lam_l, s_q, lam_q, on, on_l, contact_dims(d), True)
     rhs = np.zeros(Kmat.shape[:2])
     rhs[:, :n] = g[sel]
     # The least-squares solution of least norm, by the pseudo-inverse with LAPACK's default cut-off of singular

@@ -21,9 +21,9 @@ import torch
 from numba import njit
 
 from diffcontact.errors import ContactSolverError
-from diffcontact.solver import flat, lanes, optimality, scaling
-from diffcontact.solver.exact import contact_dims
+from diffcontact.solver import kernel, least_norm, optimality, scaling
 from diffcontact.solver.implicit import ImplicitConeQP, ScaledSolution
+from diffcontact.solver.kkt import contact_dims
 from diffcontact.solver.policy import POLICY
 from diffcontact.solver.status import Status, is_failure
 
@@ -123,7 +123,7 @@ def _float64(t: torch.Tensor) -> np.ndarray:
 def _check_values(A, q, mu, lower, active, a_finite=None) -> float:
     """Raise ``ValueError`` naming the batch elements where A, q, mu or lower are not finite or mu, lower < 0
     (arrays of ``_as_arrays``); returns the largest μ (0 if there is none).  a_finite: (B,) bool, whether each
-    element's A is finite, if known (``flat.flat_elements`` reads it in its pass over A), else A is read here."""
+    element's A is finite, if known (``least_norm.flat_elements`` reads it in its pass over A), else A is read here."""
     mu_max = (
         _values_ok(A, q, mu, lower, _NOTHING) if a_finite is None else _values_ok(_NO_MATRIX, q, mu, lower, a_finite)
     )
@@ -229,7 +229,7 @@ def solve_cone_qp(
 
     Args:
         A: (B, K·d, K·d) symmetric PSD inverse inertia in contact space, possibly singular and PSD only up to
-            rounding: flat directions and non-unique minimisers are resolved as stated in ``solver/flat.py``
+            rounding: flat directions and non-unique minimisers are resolved as stated in ``solver/least_norm.py``
             (the minimiser of least norm); a genuinely indefinite A raises ``IndefiniteMatrixError``.
         q: (B, K·d) linear term (contact velocity, minus the target velocity in the restitution phase).
         mu: (B, K) friction coefficients ≥ 0 (unused for d = 1).
@@ -258,12 +258,14 @@ def solve_cone_qp(
     arrays = _as_arrays(A, q, mu, lower, active)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
     opts = (tol, acceptable_tol, max_iter, on_failure)
-    found, a_finite, symmetric = flat.flat_elements(arrays[0], arrays[2], arrays[4], d, flat.psd_tol(out_dtype))
+    found, a_finite, symmetric = least_norm.flat_elements(
+        arrays[0], arrays[2], arrays[4], d, least_norm.psd_tol(out_dtype)
+    )
     mu_max = _check_values(*arrays, a_finite)
     if np.count_nonzero(found):  # (rare: the elements with flat directions, in torch)
         lower = torch.from_numpy(arrays[3]) if lower is None else lower
         active = torch.from_numpy(arrays[4])
-        A, q, flats = flat.project_flat(A, q, mu, active, d, flat.psd_tol(out_dtype), found)
+        A, q, flats = least_norm.project_flat(A, q, mu, active, d, least_norm.psd_tol(out_dtype), found)
         if flats.consistent.any():
             f, result = _solve_least_norm(A, q, mu, lower, active, d, flats, opts)
         else:
@@ -327,10 +329,10 @@ def _solve_scaled(
     arrays: ``_as_arrays`` of the tensors if made already; the solver works on them, the tensors are only the ends
     of the autograd graph; mu_max: the largest μ if known (``_check_values``).  sliding: (B, K) bool, contacts with
     μ ≥ ``scaling.MU_FREE`` scaled for sliding, or None.  symmetric: (B,) bool, where A equals its transpose exactly,
-    if known (``flat.flat_elements``: with ``arrays``).
+    if known (``least_norm.flat_elements``: with ``arrays``).
 
     The data are scaled once (f = γ·S·D·z, ``scaling.py``); every attempt then runs the compiled interior-point
-    method with polishing (``lanes.solve``) on some elements, in up to two passes:
+    method with polishing (``kernel.solve``) on some elements, in up to two passes:
 
     - pass 1: the method to ``IPM_TOL``, then polishing; converged if that reaches rounding level (``ROUNDING_TOL``,
       or ``tol`` if larger);
@@ -369,7 +371,7 @@ def _solve_scaled(
     if tol < IPM_TOL:
         passes.insert(0, dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL)))
     options = dict(acceptable_tol=acceptable_tol, max_iter=max_iter, refine_tol=IPM_TOL, polish_steps=POLISH_STEPS)
-    result = lanes.IPMResult(A64, T, on_q, on_l, d)
+    result = kernel.IPMResult(A64, T, on_q, on_l, d)
     # (the answers also checked in unscaled units: optimality.py)
     check = mu_max > optimality.MU_CHECKED
     elements, start_margin, c_try, l_try, gamma_try = np.arange(len(gamma)), START_MARGIN, c, l_hat, gamma
@@ -396,7 +398,7 @@ def _solve_scaled(
             c_try, l_try = c * ratio, l_hat * ratio
         if not len(elements):
             continue
-        out = result if attempt == 0 else lanes.IPMResult(A64, T, on_q, on_l, d)
+        out = result if attempt == 0 else kernel.IPMResult(A64, T, on_q, on_l, d)
         _solve_passes(A64, T, c_try, l_try, on_q, on_l, d, elements, passes, options, start_margin, out)
         if attempt > 0:  # keep the better result
             better = out.status[elements] < result.status[elements]
@@ -409,7 +411,7 @@ def _solve_scaled(
                 better[np.searchsorted(elements, again[now < natural[again]])] = True
                 natural[again] = np.minimum(now, natural[again])
             better = elements[better]
-            for name in lanes.IPMResult.OUTPUTS:
+            for name in kernel.IPMResult.OUTPUTS:
                 getattr(result, name)[better] = getattr(out, name)[better]
             if attempt == 2:
                 if natural is None or stalled is None:  # (unreachable)
@@ -468,12 +470,12 @@ def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, r
     A_c, c, l_hat, T_c, S_c, gamma_c, sigma_c, lower_scale_c, on_q, on_l, _ = scaling.scale_batch(
         *data, contact_dims(d)
     )
-    out = lanes.IPMResult(A_c, T_c, on_q, on_l, d)
+    out = kernel.IPMResult(A_c, T_c, on_q, on_l, d)
     _solve_passes(A_c, T_c, c, l_hat, on_q, on_l, d, np.arange(len(rows)), passes, options, START_MARGIN, out)
     natural = _natural(data[0], data[1], mu[rows], data[3], data[4], d, gamma_c, T_c, out.z, np.arange(len(rows)))
     ok = (out.status <= _INACCURATE) & (natural <= acceptable_tol)
     take = rows[ok]
-    for name in lanes.IPMResult.OUTPUTS:
+    for name in kernel.IPMResult.OUTPUTS:
         getattr(result, name)[take] = getattr(out, name)[ok]
     for full, part in (
         (T, T_c),
@@ -514,7 +516,7 @@ def _raise_on_failure(status: np.ndarray, on_failure: str) -> None:
 
 def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     """Solve a batch some of whose elements have non-unique minimisers and return the least-norm ones
-    (``solver/flat.py``): (f, result) as ``_solve_with_retries``.
+    (``solver/least_norm.py``): (f, result) as ``_solve_with_retries``.
 
     Without gradients: one solve, then the move to the least-norm minimiser.  With gradients, where the minimisers
     are not unique: any minimiser (first solve), a point inside their set, that point solved for again,
@@ -536,7 +538,7 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
                 A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d,
                 flats.subset(flats.consistent), first, first_result.status, opts,
             )  # fmt: skip
-            spread, inner = flat.nonunique(
+            spread, inner = least_norm.nonunique(
                 near,
                 flats.subset(flats.consistent),
                 mu[sub],
@@ -548,7 +550,7 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
             )
         nonunique = torch.zeros_like(flats.consistent)
         nonunique[flats.consistent] = spread
-        A, q = flat.centre_on(A, q, flats, nonunique, inner[spread])
+        A, q = least_norm.centre_on(A, q, flats, nonunique, inner[spread])
         f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
         result.status[sub.numpy()] = np.maximum(result.status[sub.numpy()], first_result.status)
         treated = nonunique
@@ -557,7 +559,7 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
         treated = flats.consistent
         f = _near_least_norm(A, q, mu, lower, active, d, flats, f, result.status, opts)
     solve = _cone_qp(mu, lower, active, d, opts)
-    f, status = flat.minimum_norm(f, flats, mu, lower, active, d, solve, problem, sel=treated)
+    f, status = least_norm.minimum_norm(f, flats, mu, lower, active, d, solve, problem, sel=treated)
     rows = flats.idx[treated].numpy()
     result.status[rows] = np.maximum(result.status[rows], status.numpy())
     # (a failed element's zeros may have been moved along its flat directions)
@@ -573,7 +575,7 @@ def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts: tuple[f
     on it: 2e7 times farther than the least-norm point in a stress problem, accurate relative to that size only, so
     that the move back to the least-norm point left an error of that order (a cone violated by 4 %).  With the
     curvature the minimiser is unique, within a relative O(``TIKHONOV``) of the least-norm one (Tikhonov's), and
-    the solver's answer is accurate at its scale; ``flat.minimum_norm`` then moves it the rest of the way.
+    the solver's answer is accurate at its scale; ``least_norm.minimum_norm`` then moves it the rest of the way.
     """
     rows = flats.idx[flats.consistent]
     x = f[rows]
@@ -594,7 +596,7 @@ def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts: tuple[f
 
 def _cone_qp(mu, lower, active, d, opts):
     """solve(idx, A, q) → (f, status) of the elements idx of this batch with A (m, n, n), q (m, n): the cone QPs
-    of the least-norm stage (``flat.minimum_norm``), differentiable."""
+    of the least-norm stage (``least_norm.minimum_norm``), differentiable."""
 
     def solve(idx, A, q):
         f, result = _solve_with_retries(A, q, mu[idx], lower[idx], active[idx], d, *opts)
@@ -634,7 +636,7 @@ def _solve_passes(A, T, c, l_hat, on_q, on_l, d, idx, passes, options, start_mar
     unbounded verdict stays as this pass leaves it, for the retries.)"""
     kept = None
     for tols in passes:
-        lanes.solve(A, T, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
+        kernel.solve(A, T, c, l_hat, on_q, on_l, d, idx, **tols, **options, start_margin=start_margin, out=out)
         if kept is not None:
             now = out.status[idx]
             kept_res = kept["residual"]
@@ -642,7 +644,7 @@ def _solve_passes(A, T, c, l_hat, on_q, on_l, d, idx, passes, options, start_mar
             better &= (kept_res <= tols["final_tol"]) | (kept["status"] == _INACCURATE)
             if better.any():
                 rows = idx[better]
-                for name in lanes.IPMResult.OUTPUTS:
+                for name in kernel.IPMResult.OUTPUTS:
                     getattr(out, name)[rows] = kept[name][better]
                 met = rows[kept_res[better] <= tols["final_tol"]]
                 out.status[met] = _CONVERGED
@@ -652,4 +654,4 @@ def _solve_passes(A, T, c, l_hat, on_q, on_l, d, idx, passes, options, start_mar
         idx = idx[(status == _INACCURATE) | (status == _MAX_ITER)]
         if not len(idx):
             break
-        kept = {name: getattr(out, name)[idx] for name in lanes.IPMResult.OUTPUTS}  # (copies: fancy indexing)
+        kept = {name: getattr(out, name)[idx] for name in kernel.IPMResult.OUTPUTS}  # (copies: fancy indexing)

@@ -1,4 +1,4 @@
-"""The substitution f = γ·S·D·z that turns a batch of contact cone QPs into the standard form of ``lanes.py``
+"""The substitution f = γ·S·D·z that turns a batch of contact cone QPs into the standard form of ``kernel.py``
 (compiled: one pass over the data instead of some forty small tensor operations).
 
 Per batch element, with contact k's rows i = k·d … k·d + d − 1:
@@ -12,7 +12,7 @@ Per batch element, with contact k's rows i = k·d … k·d + d − 1:
         relative to max(1, ‖z‖∞), in effect absolute for the small z that followed: docs/scaling.md);
     P = T A T with T = S·D, plus an identity on inactive rows and on the tangential rows of μ = 0 contacts (which
         have no cone: only the ray z_n ≥ lower remains, their z_t is pinned to 0), i.e. on the rows where T = 0;
-        formed by the kernel as it gathers a group's problems (``lanes.scaled_matrix``), not here;
+        formed by the kernel as it gathers a group's problems (``kernel.scaled_matrix``), not here;
     contacts with μ ≥ ``MU_FREE`` have D = 1 and no cone, only the ray z_n ≥ l̂, and a free z_t ("free"): with
         a tangential factor μ ≥ 1e4 the unit cone's z_t = f_t/(γσμ) is below the kernel's resolution next to z_n
         for a contact that sticks (its test is relative to ‖z‖∞), and such problems ended at the iteration limit
@@ -31,7 +31,7 @@ import math
 import numpy as np
 from numba import njit
 
-from diffcontact.solver import lanes
+from diffcontact.solver import kernel
 from diffcontact.solver.policy import POLICY
 
 #: Friction coefficients from which a contact is solved free first, and again scaled for sliding where its answer
@@ -49,7 +49,8 @@ def scale_batch(A, q, mu, lower, active, dims, sliding=None, symmetric=None):
     Returns (A_sym, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu): A_sym = ½(A + Aᵀ)
     (B, n, n; A itself if symmetric); c, T, S = ∂T/∂μ (B, n); gamma (B,); sigma, l_hat, lower_scale = ∂l̂/∂lower
     (B, K); on_q (cones used), on_l (rays used), zero_mu (B, K) bool.  P = T·A_sym·T (plus the identity on the rows
-    where T is 0) is formed by the kernel (``lanes.scaled_matrix``).  Run on the solver's threads (``lanes.parallel``).
+    where T is 0) is formed by the kernel (``kernel.scaled_matrix``).  Run on the solver's threads
+    (``kernel.parallel``).
     """
     B, K = mu.shape
     n = K * len(dims)
@@ -67,7 +68,7 @@ def scale_batch(A, q, mu, lower, active, dims, sliding=None, symmetric=None):
     )
     c, T, S, gamma, sigma, l_hat, lower_scale, on_q, on_l, zero_mu = out
     sliding = _NONE_SLIDING if sliding is None else sliding
-    lanes.parallel(lambda start, stop: _scale_range(A_sym, q, mu, lower, active, sliding, dims, *out, start, stop), B)
+    kernel.parallel(lambda start, stop: _scale_range(A_sym, q, mu, lower, active, sliding, dims, *out, start, stop), B)
     return A_sym, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu
 
 
@@ -180,7 +181,7 @@ def chain_rule_batch(u, v_l, z, gf, A, q, T, S, gamma, lam_l, on_l, lower_scale,
         np.empty((B if need[3] else 0, K)),
     )
     args = (u, v_l, z, gf, A, q, T, S, gamma, lam_l, on_l, lower_scale, slide, dims, need, *grads)
-    lanes.parallel(lambda start, stop: _chain_rule_range(*args, start, stop), B)
+    kernel.parallel(lambda start, stop: _chain_rule_range(*args, start, stop), B)
     return grads
 
 

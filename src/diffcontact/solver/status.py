@@ -1,6 +1,6 @@
 """The per-element status codes, the failure rule and the weak-cone threshold.
 
-Their one definition is ``csrc/api.h``; these are its Python copies, which ``lanes.py`` checks against the compiled
+Their one definition is ``csrc/api.h``; these are its Python copies, which ``kernel.py`` checks against the compiled
 kernel when it loads it (an import error names any disagreement: a stale build).
 """
 

@@ -1,6 +1,6 @@
 // The boundary between the compiled kernel and Python: the one definition of the status codes, the failure rule,
 // the weak-cone threshold and the arguments of the entry points.  lanes_module.cpp fills these structs from the
-// arguments of the module's functions (lanes.py calls them); lanes.py checks, when it loads the module, that its
+// arguments of the module's functions (kernel.py calls them); kernel.py checks, when it loads the module, that its
 // copies of the status codes, the failure rule and the threshold agree with _lanes.constants().
 //
 // Plain C declarations, no headers: included by the per-ISA translation units (which switch the target first)
@@ -11,7 +11,7 @@
 typedef long long i64;
 
 // Per-element status (diffcontact.solver.Status).  The first four are reported by the interior-point method; the
-// last by the least-norm stage of singular problems (flat.py) as well.
+// last by the least-norm stage of singular problems (least_norm.py) as well.
 enum {
   CONVERGED = 0,   // residual after polishing at most final_tol
   INACCURATE = 1,  // not converged, residual at most acceptable_tol (usable)
@@ -28,7 +28,7 @@ enum { FIRST_FAILURE = MAX_ITER };
 enum { API_VERSION = 6 };
 
 // _lanes.solve: the interior-point method to ipm_tol, then (polish_steps > 0) polishing, of the batch
-// elements idx[start..stop) of B problems in the standard form of lanes.py (K contacts of dimension d, n = K·d;
+// elements idx[start..stop) of B problems in the standard form of kernel.py (K contacts of dimension d, n = K·d;
 // arrays C-contiguous, row-major).  Writes the rows idx[start..stop) of the outputs.  P = T·A·T is formed per group
 // as it is gathered (P_ij = T_i·A_ij·T_j, plus 1 on the diagonal where T_i = 0: a row the answer does not depend on;
 // T in `scale`).
@@ -81,7 +81,7 @@ struct AdjointArgs {
 // _lanes.flat: for the elements start … stop − 1, whether ½(A + Aᵀ) on the rows in use (active contacts,
 // without the tangential rows of μ = 0 contacts) minus tol·ref·I is not positive definite (its Cholesky factorisation
 // fails), ref its largest diagonal entry on those rows; an element with ref ≤ 0 is flat, one without rows in use not
-// (flat.py, flat_elements).  Also, in the same pass over A, whether all of its entries are finite (the input check)
+// (least_norm.py, flat_elements).  Also, in the same pass over A, whether all of its entries are finite (the input check)
 // and whether it equals its transpose exactly (then the scaling uses it without forming ½(A + Aᵀ)).
 struct FlatArgs {
   const double* A;               // (B, n, n)

@@ -1,4 +1,4 @@
-// Newton's method on the exact optimality conditions, W problems at a time (see exact.py for the equations):
+// Newton's method on the exact optimality conditions, W problems at a time (see kkt.py for the equations):
 // polishing of the interior-point solution and the adjoint solve of the backward pass.
 //
 // The linearised conditions K (unknowns dz, the rays' dλ_l, the cones' dλ_q) are reduced exactly to n + K unknowns

@@ -1,6 +1,6 @@
 // Interior-point method for many small contact cone QPs, W problems at a time in the lanes of SIMD vectors.
 //
-// The problem is stated in lanes.py.  The method: Mehrotra's predictor–corrector with Nesterov–Todd scaling of the
+// The problem is stated in kernel.py.  The method: Mehrotra's predictor–corrector with Nesterov–Todd scaling of the
 // second-order cones kept as d×d matrices and updated multiplicatively, one step of iterative refinement of every
 // Newton direction near the solution, the best iterate kept, stalls detected.  The problems of a group run in lockstep:
 // every operation acts on W problems at once, a problem that has finished stops being updated (its best iterate is

@@ -1,4 +1,4 @@
-// The lane-parallel interior-point kernel as a CPython extension module, diffcontact.solver._lanes (see lanes.py;
+// The lane-parallel interior-point kernel as a CPython extension module, diffcontact.solver._lanes (see kernel.py;
 // the entry points' arguments are the structs of api.h).  The instruction set is chosen at run time, so one build
 // runs on any x86-64 CPU (or on any other, with 2 lanes).
 //
@@ -204,7 +204,7 @@ static PyObject* py_flat(PyObject*, PyObject* const* args, Py_ssize_t nargs) {
   Py_RETURN_NONE;
 }
 
-// constants() -> dict: the facts of api.h, for lanes.py to check its copies against.
+// constants() -> dict: the facts of api.h, for kernel.py to check its copies against.
 static PyObject* py_constants(PyObject*, PyObject* const*, Py_ssize_t) {
   return Py_BuildValue("{s:L,s:i,s:i,s:i,s:i,s:i,s:i,s:d}", "api_version", (long long)API_VERSION, "converged",
                        CONVERGED, "inaccurate", INACCURATE, "max_iter", MAX_ITER, "numerical", NUMERICAL, "unbounded",
@@ -232,7 +232,7 @@ static PyMethodDef methods[] = {
     FAST("solve", py_solve, "The interior-point method with polishing (SolveArgs of api.h)."),
     FAST("adjoint", py_adjoint, "The adjoint solve of the backward pass (AdjointArgs of api.h)."),
     FAST("flat", py_flat, "The test for flat directions (FlatArgs of api.h)."),
-    FAST("constants", py_constants, "The facts of api.h lanes.py checks."),
+    FAST("constants", py_constants, "The facts of api.h kernel.py checks."),
     FAST("supported", py_supported, "Lane widths this CPU runs, as a bit set."),
     FAST("select", py_select, "Use the kernel of this lane width."),
     {nullptr, nullptr, 0, nullptr},

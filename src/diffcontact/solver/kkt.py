@@ -1,4 +1,4 @@
-"""The optimality conditions of the standard-form problem (see ``lanes.py``) linearised at a solution, as a dense
+"""The optimality conditions of the standard-form problem (see ``kernel.py``) linearised at a solution, as a dense
 matrix: the reference for the compiled kernel's reduced solves (``csrc/exact_lanes.hpp``, which polishes the
 interior-point solution and solves the adjoint of the backward pass) and the least-squares fallback of the
 backward pass at a degenerate solution.

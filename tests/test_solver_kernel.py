@@ -15,8 +15,8 @@ import pytest
 import torch
 from solver_oracle import random_instance
 
-from diffcontact.solver import lanes, scaling, status
-from diffcontact.solver.exact import contact_dims
+from diffcontact.solver import kernel, scaling, status
+from diffcontact.solver.kkt import contact_dims
 from diffcontact.solver.problem import IPM_TOL, START_MARGIN
 from diffcontact.solver.status import Status
 
@@ -35,7 +35,7 @@ def _standard_form(K, d, B, seed):
 def _iterates(A, T, c, l_hat, on_q, on_l, d, trace, polish_steps=0):
     """The interior-point iterates alone (to 1e-8, no polishing), as tensors."""
     options = dict(acceptable_tol=1e-7, max_iter=60, start_margin=START_MARGIN, refine_tol=IPM_TOL)
-    res = lanes.solve(
+    res = kernel.solve(
         A, T, c, l_hat, on_q, on_l, d, ipm_tol=1e-8, final_tol=1e-8, **options, polish_steps=polish_steps, trace=trace
     )
     return SimpleNamespace(**{name: torch.from_numpy(getattr(res, name)) for name in res.OUTPUTS})
@@ -44,10 +44,10 @@ def _iterates(A, T, c, l_hat, on_q, on_l, d, trace, polish_steps=0):
 @pytest.mark.parametrize("d,K", [(1, 4), (2, 3), (3, 5)])
 def test_the_kernel_forms_p_by_its_stated_rule(d, K):
     """P = T·A·T formed in the kernel (with the identity on the rows where T = 0: inactive contacts, which the batch
-    has) solves bit for bit as the same P formed in Python (``lanes.scaled_matrix``) and passed with T = 1."""
+    has) solves bit for bit as the same P formed in Python (``kernel.scaled_matrix``) and passed with T = 1."""
     A, T, *rest = _standard_form(K, d, B=23, seed=5 * d + K)
     assert (T == 0).any()
-    P = lanes.scaled_matrix(A, T)
+    P = kernel.scaled_matrix(A, T)
     got, ref = (_iterates(*ab, *rest, d, np.zeros((23, 0, 4)), 3) for ab in ((A, T), (P, np.ones_like(T))))
     for name in got.__dict__:
         assert torch.equal(getattr(got, name), getattr(ref, name)), name
@@ -55,21 +55,21 @@ def test_the_kernel_forms_p_by_its_stated_rule(d, K):
 
 @pytest.fixture
 def restore_width():
-    width = lanes.current_width()
+    width = kernel.current_width()
     yield
-    lanes.select_width(width)
+    kernel.select_width(width)
 
 
 @pytest.mark.parametrize("d,K", [(1, 4), (2, 3), (3, 5)])
 def test_lane_widths_agree(d, K, restore_width):
     data = _standard_form(K, d, B=23, seed=11 * d + K)
     results = {}
-    for width in lanes.supported_widths():
-        lanes.select_width(width)
+    for width in kernel.supported_widths():
+        kernel.select_width(width)
         trace = np.zeros((23, 8, 4))
         res = _iterates(*data, d, trace)
         results[width] = (res, trace)
-    ref, ref_trace = results[lanes.supported_widths()[0]]
+    ref, ref_trace = results[kernel.supported_widths()[0]]
     assert (ref.status == Status.CONVERGED).all()
     assert ref.iterations[0] == 0 and (ref.z[0] == 0).all()
     assert (ref_trace[1:, 0, 2] > 0).all()  # the trace holds the gap of the first iterate
@@ -84,13 +84,13 @@ def test_lane_widths_agree(d, K, restore_width):
 
 def test_unknown_width_is_refused(restore_width):
     with pytest.raises(ValueError, match="lane width 16: not a lane width"):
-        lanes.select_width(16)
+        kernel.select_width(16)
 
 
 def test_bad_environment_variable_is_named(monkeypatch, restore_width):
     monkeypatch.setenv("DIFFCONTACT_LANES", "wide")
     with pytest.raises(ValueError, match="DIFFCONTACT_LANES='wide'"):
-        lanes.select_width()
+        kernel.select_width()
 
 
 @pytest.mark.slow
@@ -110,11 +110,11 @@ def test_bad_environment_variable_does_not_break_the_import():
 
 def test_python_and_kernel_agree_on_the_shared_facts():
     """Status codes, failure rule and weak-cone threshold: csrc/api.h against the Python copies."""
-    got = lanes._lib.constants()
+    got = kernel._lib.constants()
     assert {s.name: int(s) for s in Status} == {s.name: got[s.name.lower()] for s in Status}
     assert got["first_failure"] == status.FIRST_FAILURE
     assert got["weak_tol"] == status.WEAK_TOL
-    assert got["api_version"] == lanes.API_VERSION
+    assert got["api_version"] == kernel.API_VERSION
     assert [bool(status.is_failure(s)) for s in Status] == [False, False, True, True, True]
 
 
@@ -126,16 +126,16 @@ def test_kernel_refuses_arrays_that_do_not_fit_the_problem():
     A = np.tile(np.eye(n), (B, 1, 1))
     T, c, lower = np.ones((B, n)), np.tile([-1.0, 0.5, 0.0], (B, K)), np.zeros((B, K))  # (sticking contacts)
     on = np.ones((B, K), dtype=np.bool_)
-    out = lanes.IPMResult(A, T, on, on, d)
+    out = kernel.IPMResult(A, T, on, on, d)
     idx = np.arange(B, dtype=np.int64)
     options = (K, d, IPM_TOL, 1e-13, 1e-7, 60, START_MARGIN, IPM_TOL, 3)
 
     def solve(options=options, start=0, stop=B, **change):
-        args = dict(A=A, T=T, c=c, lower=lower, on=on, on_l=on, idx=idx, trace=lanes._NO_TRACE, out=out._buffer)
+        args = dict(A=A, T=T, c=c, lower=lower, on=on, on_l=on, idx=idx, trace=kernel._NO_TRACE, out=out._buffer)
         args.update(change)
-        return lanes._lib.solve(*args.values(), *options, start, stop)
+        return kernel._lib.solve(*args.values(), *options, start, stop)
 
-    solve()  # (the arguments as lanes.solve passes them)
+    solve()  # (the arguments as kernel.solve passes them)
     assert (out.status == Status.CONVERGED).all()
     np.testing.assert_allclose(out.z, np.tile([1.0, -0.5, 0.0], (B, K)), atol=1e-12)  # (unconstrained minimiser)
     with pytest.raises(ValueError, match="A has"):
@@ -153,11 +153,11 @@ def test_kernel_refuses_arrays_that_do_not_fit_the_problem():
     with pytest.raises(ValueError, match="d = 4"):
         solve(options=(K, 4, *options[2:]))
     with pytest.raises(TypeError, match="takes 20 arguments"):
-        lanes._lib.solve(A, T)
+        kernel._lib.solve(A, T)
     with pytest.raises(ValueError, match="flags has"):
-        lanes._lib.flat(A, lower, on, np.zeros(3 * B + 1, dtype=np.bool_), K, d, 1e-9, 0, B)
+        kernel._lib.flat(A, lower, on, np.zeros(3 * B + 1, dtype=np.bool_), K, d, 1e-9, 0, B)
     with pytest.raises(ValueError, match="v_l has"):
-        lanes._lib.adjoint(A, T, out._buffer, on, on, c, np.empty((B, n)), np.empty((B, 1)), np.empty(B, np.bool_),
+        kernel._lib.adjoint(A, T, out._buffer, on, on, c, np.empty((B, n)), np.empty((B, 1)), np.empty(B, np.bool_),
                            K, d, 0, B)  # fmt: skip
 
 

@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from diffcontact.errors import IndefiniteMatrixError
-from diffcontact.solver import lanes
+from diffcontact.solver import kernel
 from diffcontact.solver.policy import POLICY
 from diffcontact.solver.status import Status, is_failure
 
@@ -98,9 +98,9 @@ def flat_elements(
 
     A: (B, n, n) float64, symmetrised on the fly (½(A + Aᵀ)); mu: (B, K) float64; active: (B, K) bool.  A Cholesky
     factorisation of A − tol·ref·I per element (its rounding error, ~n·eps·ref, is far below tol·ref), in the
-    compiled kernel (``lanes.flat_test``: the rows not in use replaced by the identity, W elements at a time).
+    compiled kernel (``kernel.flat_test``: the rows not in use replaced by the identity, W elements at a time).
     """
-    return lanes.flat_test(A, mu, active, d, tol)
+    return kernel.flat_test(A, mu, active, d, tol)
 
 
 def _analyse(A, q, used, tol: float, mu=None):

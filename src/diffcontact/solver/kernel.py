@@ -12,7 +12,7 @@ The method is Mehrotra's predictor–corrector with Nesterov–Todd scaling (as 
 ``csrc/ipm_lanes.hpp``).  The reduced Newton matrix H = P + GᵀW⁻²G is P plus a d×d block per contact; it is
 positive definite even when P is singular, and one Cholesky factor serves both directions of an iteration.  Newton
 steps on the exact optimality conditions then polish the solution to rounding accuracy (``csrc/exact_lanes.hpp``,
-equations in ``exact.py``).  The tolerances and the retries are the caller's (``problem._solve_with_retries``).
+equations in ``kkt.py``).  The tolerances and the retries are the caller's (``problem._solve_with_retries``).
 
 Three entry points: the interior-point method followed by polishing (``solve``), the adjoint solve of the
 backward pass (``adjoint``) and the Cholesky test for flat directions of the input (``flat_test``, for
@@ -54,7 +54,7 @@ def _load():
         "weak_tol": WEAK_TOL,
     }
     if got != want:
-        stale = f"{_lanes.__file__} disagrees with lanes.py (a stale build?)"
+        stale = f"{_lanes.__file__} disagrees with kernel.py (a stale build?)"
         raise ImportError(f"{stale}: kernel {got}, Python {want}; {build}")
     return _lanes
 

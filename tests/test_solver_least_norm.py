@@ -1,4 +1,4 @@
-"""Effective-mass matrices that are PSD up to rounding, and minimisers that are not unique (solver/flat.py).
+"""Effective-mass matrices that are PSD up to rounding, and minimisers that are not unique (solver/least_norm.py).
 
 Every contact dimension and size the 8 benchmark tasks use: d = 1 with up to 19 contacts (rope), d = 2 with up to
 5 (balls, pendulum, disks), d = 3 with 1 (gyroscope).  A is singular PSD, rounded to float32 and perturbed by
@@ -31,7 +31,7 @@ TOL_F = 1e-6  # against the two-stage Clarabel reference (its own errors reach a
 
 
 def _projected(A: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The problem as the solver states it (solver/flat.py), computed independently: eigenvalues of magnitude
+    """The problem as the solver states it (solver/least_norm.py), computed independently: eigenvalues of magnitude
     ≤ 1e-6·max(diag A) set to 0 (the PSD projection, and a rounding-level positive eigenvalue counted as 0), and
     q's component along them (rounding: q = F w) removed."""
     evals, V = np.linalg.eigh(0.5 * (A + A.T))
@@ -149,7 +149,7 @@ def test_a_set_of_minimisers_that_is_a_point_stops_the_augmented_lagrangian_earl
     training): A = m⁻¹·[[1,0,0,−1],[0,1,1,0],[0,1,1,0],[−1,0,0,1]] has two flat directions, yet the cones admit a
     single minimiser, f = (0, 0, s, μs) with s = (0.97 + 0.93μ) / (0.94(1 + μ²)) (minimise over u = f₁ₙ − f₂ₜ ≥ −μf₂ₙ
     and s = f₁ₜ + f₂ₙ).  The augmented Lagrangian's miss then falls sublinearly; it stops once that is clear."""
-    import diffcontact.solver.flat as flat
+    import diffcontact.solver.least_norm as flat
 
     solves = []
     several = flat._least_norm_several
@@ -240,7 +240,7 @@ def test_stress_benchmark_element_whose_gradient_was_not_finite_in_its_batch():
 def test_gradcheck_of_the_flat_projection_alone():
     """(A, q) → (Ã, q̃, Π_N) through A = F Fᵀ + E (E: fixed eigenvalues ±2e-8 on the null space) and q = F w + 1e-9:
     the first-order eigenvector perturbation of the backward pass against finite differences."""
-    from diffcontact.solver.flat import FlatProjection
+    from diffcontact.solver.least_norm import FlatProjection
 
     gen = torch.Generator().manual_seed(0)
     B, n, r = 3, 4, 2
