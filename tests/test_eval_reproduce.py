@@ -59,6 +59,7 @@ def test_a_killed_reproduction_resumes_without_redoing_finished_runs(resumed):
     assert (RunDir.of_cell(out, "BP5", "CM-CD-CLNN", 0).path / "eval" / "rollout.gif").is_file()
 
 
+@pytest.mark.slow  # (its fixture trains and evaluates a quick reproduction: about 30 s)
 def test_the_quick_report_has_every_section_and_a_row_for_every_run(resumed):
     out, report, *_ = resumed
     text = report.read_text()
