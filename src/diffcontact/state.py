@@ -19,6 +19,12 @@ Potential = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 so replacing the inertia never leaves the potential with other masses."""
 
 
+def with_anchors(x: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
+    """Positions with the fixed ``anchors`` (n_anchors, d) appended, addressed by extended point indices P, P + 1,
+    ...: (B, P, d) -> (B, P + n_anchors, d)."""
+    return torch.cat([x, anchors.to(x).expand(x.shape[0], -1, -1)], dim=1)
+
+
 class ForcePotential(ABC):
     """A potential that also gives its force −∇V(x) in closed form, as ordinary differentiable tensor operations.
 

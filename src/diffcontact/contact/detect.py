@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from diffcontact.contact.kinds import ContactKind
+from diffcontact.state import with_anchors
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,7 @@ class Detector:
 
     def extend(self, x: torch.Tensor) -> torch.Tensor:
         """Positions with the fixed anchors appended: (B, P, d) -> (B, P + n_anchors, d)."""
-        return torch.cat([x, self.anchors.to(x).expand(x.shape[0], -1, -1)], dim=1)
+        return with_anchors(x, self.anchors)
 
     def gaps(self, x: torch.Tensor) -> torch.Tensor:
         """Signed gaps of all K_max candidates (B, K_max); negative means in contact."""

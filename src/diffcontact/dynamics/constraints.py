@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import torch
 
+from diffcontact.state import with_anchors
+
 
 class Constraints:
     """The equality constraints of a system (static index tensors, built once).
@@ -56,7 +58,7 @@ class Constraints:
         return J.reshape(self.n_joint * self.d, self.P * self.d)
 
     def _ext(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([x, self.anchors.to(x).expand(x.shape[0], -1, -1)], dim=1)
+        return with_anchors(x, self.anchors)
 
     def phi(self, x: torch.Tensor) -> torch.Tensor:
         """Constraint values Φ(x): (B, P, d) -> (B, E), in m² (distances) and m (joints)."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from diffcontact.state import with_anchors
+
 
 class Gravity:
     """V = g Σ_b m_b (c_b · up): uniform gravity of strength g (m/s²) pulling along −``up``.
@@ -36,7 +38,7 @@ class Springs:
         self.i, self.j, self.rest, self.k, self.anchors = i, j, rest, k, anchors
 
     def __call__(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
-        ext = torch.cat([x, self.anchors.to(x).expand(x.shape[0], -1, -1)], dim=1)
+        ext = with_anchors(x, self.anchors)
         length = (ext[:, self.i] - ext[:, self.j]).norm(dim=-1)
         return (self.k.to(x) * (length - self.rest.to(x)) ** 2).sum(-1)
 

@@ -12,7 +12,7 @@ from diffcontact.config import TaskConfig
 from diffcontact.contact.detect import Detector
 from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import kinetic_energy
-from diffcontact.state import Params, State
+from diffcontact.state import Params, State, with_anchors
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,7 @@ class Links:
     def stretch(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """s = (|x_i − x_j| − rest) / spread (B, L) and the unit vectors (x_i − x_j) / |x_i − x_j| (B, L, d):
         x (B, P, d) in m."""
-        ext = torch.cat([x, self.anchors.to(x).expand(x.shape[0], -1, -1)], dim=1)
+        ext = with_anchors(x, self.anchors)
         delta = ext[:, self.i] - ext[:, self.j]
         length = delta.norm(dim=-1)
         return (length - self.rest.to(x)) / self.spread.to(x), delta / length[..., None]
