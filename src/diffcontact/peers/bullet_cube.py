@@ -14,7 +14,7 @@ the contact is Bullet's default rigid one (ERP / CFM). Angular velocity is set i
 from __future__ import annotations
 
 import numpy as np
-import pybullet as pb
+import pybullet as pb  # pyright: ignore[reportMissingImports]  (an optional extra, absent where it is not installed)
 
 from diffcontact.data.tosses import Tosses
 from diffcontact.errors import ConfigError

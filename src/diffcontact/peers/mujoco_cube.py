@@ -15,8 +15,9 @@ from typing import cast
 
 import numpy as np
 
-# (MuJoCo's API lives in compiled modules without type stubs, so a type checker cannot see these names)
-from mujoco import MjData, MjModel, mj_getState, mj_resetData, mj_stateSize, mjtState, rollout  # pyright: ignore[reportAttributeAccessIssue]
+# (MuJoCo is an optional extra, and its API lives in compiled modules without type stubs, so a type checker may
+# not find the module, or not see these names)
+from mujoco import MjData, MjModel, mj_getState, mj_resetData, mj_stateSize, mjtState, rollout  # pyright: ignore[reportAttributeAccessIssue, reportMissingImports]
 
 from diffcontact.data.tosses import Tosses
 from diffcontact.peers.cube import (
