@@ -157,3 +157,22 @@ def test_the_report_is_published_between_the_markers_of_the_results_page(resumed
     (docs / "results.md").write_text("# Results without markers\n")
     with pytest.raises(SystemExit, match="markers"):
         publish(out, docs)
+
+
+@pytest.mark.slow  # (trains and evaluates one quick cell: about 10 s)
+def test_a_reproduction_on_noisy_data_records_its_noise_and_sets_the_published_noise_runs_beside(tmp_path):
+    import json
+
+    out = tmp_path / "noisy"
+    report = reproduce(["BP5-e"], ["CM-CD-CLNN"], [0], out, quick=True, jobs=1, noise=0.05, echo=lambda _: None)
+    meta = json.loads((out / "data" / "BP5-e" / "meta.json").read_text())
+    assert meta["request"]["noise"] == 0.05 and meta["request"]["noise_kind"] == "free"
+    text = report.read_text()
+    assert "**Noisy data**: observation noise of std 0.05" in text
+    assert "## Table 2: learned μ, e (homogeneous tasks) on data with noise 0.05" in text
+    row = next(line for line in text.splitlines() if line.startswith("| BP5-e (0, 1) |"))
+    assert row.endswith(" / 0, 0.0373 |")  # (the published CM-CLNN at noise 0.05, H.6)
+    with pytest.raises(ConfigError, match="holds a reproduction on data with noise 0.05: give another --out"):
+        reproduce(["BP5-e"], ["CM-CD-CLNN"], [0], out, quick=True, noise=0.01)
+    with pytest.raises(ConfigError, match="noise = -1.0 is not a finite number >= 0"):
+        reproduce(["BP5-e"], ["CM-CD-CLNN"], [0], tmp_path / "other", quick=True, noise=-1.0)

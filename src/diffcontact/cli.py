@@ -366,7 +366,10 @@ def reproduce(
         min=1,
         help="Runs at a time, one process each (default: one per available CPU, as memory allows: 1.5 GB each).",
     ),
-    data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick)."),
+    data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick or --noise)."),
+    noise: float = typer.Option(
+        0.0, "--noise", help="Std of the observation noise on the training and validation chunks (0 = none)."
+    ),
     threads: int = typer.Option(
         None,
         "--threads",
@@ -395,7 +398,7 @@ def reproduce(
             raise ConfigError(f"--seeds {seeds}: not integers") from err
         run_matrix(
             tasks, models, seed_list, out, quick=quick, jobs=jobs, threads=per_run, data=data or None, echo=typer.echo,
-            command=" ".join(["diffcontact", *sys.argv[1:]]),
+            noise=noise, command=" ".join(["diffcontact", *sys.argv[1:]]),
         )  # fmt: skip
 
 

@@ -32,6 +32,21 @@ TABLE2 = {
     },
 }
 
+# H.6: learned (μ, e) of the models trained on noisy data (single checkpoints; "failed" where the authors say so), by
+# noise std. Only CP3-e, CP3 and BP5-e were published.
+NOISE = {
+    0.01: {
+        "CP3-e": {"CM-CD-CLNN": (0.0009, 1), "CMr-CD-CLNN": (0.0038, 1)},
+        "CP3": {"CM-CD-CLNN": (0.4951, 0.0180), "CMr-CD-CLNN": (0.4959, 0.0361)},
+        "BP5-e": {"CM-CD-CLNN": (0, 0.9266), "CMr-CD-CLNN": (0.0024, 0.9712)},
+    },
+    0.05: {
+        "CP3-e": {"CM-CD-CLNN": (0, 0.9978), "CMr-CD-CLNN": (0.0036, 1)},
+        "CP3": {"CM-CD-CLNN": (0.4353, 0.0632), "CMr-CD-CLNN": (0.4618, 0.0608)},
+        "BP5-e": {"CM-CD-CLNN": (0, 0.0373), "CMr-CD-CLNN": (0.4460, 0.2435)},
+    },
+}
+
 # H.3: the per-slot vectors of CM-CD-CLNN (10 pairs, then 20 ball-wall slots)
 SLOTS = {
     "BP5": {

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from diffcontact.config import available_tasks
+from diffcontact.data.noise import check_noise
 from diffcontact.errors import ConfigError
 from diffcontact.eval.evaluate import evaluated
 from diffcontact.eval.loading import registered_models
@@ -198,8 +199,8 @@ def expected_seconds(out: Path, cells: list[Cell]) -> dict[str, float]:
     return expected
 
 
-def _settings_file(out: Path, quick: bool) -> dict:
-    """OUT/reproduce.json, checked to be of the same mode (quick or full: their runs must not mix)."""
+def _settings_file(out: Path, quick: bool, noise: float) -> dict:
+    """OUT/reproduce.json, checked to be of the same mode (quick or full) and noise: their runs must not mix."""
     path = out / "reproduce.json"
     if path.is_file():
         saved = json.loads(path.read_text())
@@ -208,8 +209,13 @@ def _settings_file(out: Path, quick: bool) -> dict:
             raise ConfigError(
                 f"{out} holds a {mode} reproduction: give another --out for a {'quick' if quick else 'full'} one"
             )
+        if saved.get("noise", 0.0) != noise:
+            raise ConfigError(
+                f"{out} holds a reproduction on data with noise {saved.get('noise', 0.0):g}: give another --out for "
+                f"noise {noise:g}"
+            )
         return saved
-    return {"quick": quick, "sessions": []}
+    return {"quick": quick, "noise": noise, "sessions": []}
 
 
 def reproduce(
@@ -222,6 +228,7 @@ def reproduce(
     jobs: int = 1,
     threads: int = 1,
     data: str | Path | None = None,
+    noise: float = 0.0,
     progress_every: float = 60.0,
     echo: Callable[[str], None] = print,
     command: str = "",
@@ -230,8 +237,9 @@ def reproduce(
     write OUT/report.md (:func:`diffcontact.eval.report.write_report`).  Returns the report's path.
 
     ``threads``: threads of each run's process.  ``data``: dataset root (default ``data``, or OUT/data with
-    ``quick``).  ``progress_every``: seconds between progress lines while runs are going (one is also printed
-    whenever a run starts or ends).
+    ``quick`` or ``noise``).  ``noise``: the standard deviation of the observation noise on the training and
+    validation chunks (:mod:`diffcontact.data.noise`; the test trajectories stay clean).  ``progress_every``:
+    seconds between progress lines while runs are going (one is also printed whenever a run starts or ends).
     """
     from diffcontact.data.generate import generate_dataset
 
@@ -247,14 +255,15 @@ def reproduce(
         raise ConfigError(f"jobs = {jobs} is not >= 1")
     if threads < 1:
         raise ConfigError(f"threads = {threads} is not >= 1")
+    noise = check_noise(noise)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    settings = _settings_file(out, quick)
-    data = Path(data) if data else (out / "data" if quick else Path("data"))
+    settings = _settings_file(out, quick, noise)
+    data = Path(data) if data else (out / "data" if quick or noise else Path("data"))
     started, began = time.perf_counter(), time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     sizes: dict[str, Any] = {k: QUICK[k] for k in ("n_train", "n_val", "n_test", "frames")} if quick else {}
     for task in tasks:
-        generate_dataset(task, data, progress=False, echo=echo, **sizes)
+        generate_dataset(task, data, noise=noise, progress=False, echo=echo, **sizes)
     cells = plan(out, tasks, models, seeds)
     todo = [c for c in cells if c.todo in ("train", "evaluate")]
     for c in cells:
