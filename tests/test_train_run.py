@@ -36,11 +36,14 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     assert learned == json.loads(json.dumps(summary))
     for key in ("mu", "e", "mass_ratio"):
         item = learned[key]
-        assert set(item) == {"learned", "true", "max_abs_error"} | ({"identifiable"} if key != "mass_ratio" else set())
+        evidence = {"identifiable", "std_error", "identified", "max_abs_error_identified"}
+        assert set(item) == {"learned", "true", "max_abs_error"} | (evidence if key != "mass_ratio" else set())
         assert len(item["learned"]) == len(item["true"])
         err = max(abs(a - b) for a, b in zip(item["learned"], item["true"]))
         assert item["max_abs_error"] == pytest.approx(err)
     assert len(set(learned["mu"]["identifiable"])) == 1  # (homogeneous: one value, identified by any slot)
+    assert len(set(learned["mu"]["std_error"])) == 1 and len(set(learned["evidence_chunks"])) == 1
+    assert learned["evidence_chunks"][0] > 0
     assert len(learned["collisions"]) == len(learned["mu"]["true"]) and sum(learned["collisions"]) > 0
     assert learned["mu"]["true"][0] == pytest.approx(0.2) and learned["e"]["true"][0] == pytest.approx(0.8)
     config = json.loads((run / "config.json").read_text())

@@ -25,6 +25,7 @@ from diffcontact.dynamics.inertia import body_blocks, dense
 from diffcontact.models.params import LearnedGravity
 from diffcontact.state import Inertia
 from diffcontact.systems.base import System
+from diffcontact.train.identify import evidence
 
 
 def slot_contacts(task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -113,8 +114,13 @@ def compare(learned: torch.Tensor, true: torch.Tensor, identifiable: torch.Tenso
 
 def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> dict:
     """``{"mu", "e", "mass_ratio"[, "moments"], "inertia", "collisions", "collisions_slipping",
-    "collisions_bound"}`` of a model ``net`` (its ``params``: LearnedParams) trained on ``task``'s chunks
-    ``chunk_x``, ``chunk_v`` (N, L, P, d).
+    "collisions_bound", "evidence_chunks"}`` of a model ``net`` (its ``params``: LearnedParams) trained on
+    ``task``'s chunks ``chunk_x``, ``chunk_v`` (N, L, P, d).
+
+    μ and e also carry what the learned model alone says of them (:mod:`diffcontact.train.identify`), per slot:
+    ``std_error`` (None: the data do not fix it), ``identified`` (a 95 % interval within ± 0.01) and
+    ``max_abs_error_identified`` (against the truth, over the slots so marked); ``evidence_chunks``: the training
+    chunks with a collision of each slot under the learned model.
 
     μ and e per contact slot, with the slots the data can identify (``slot_contacts``: μ by slipping collisions,
     e by collisions whose restitution the bound e·f_c,n sets, or, for a true e of 0, by any collision; homogeneous
@@ -140,6 +146,15 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> 
         "e": compare(learned.e.detach().double(), truth.e.double(), seen_e),
         "mass_ratio": compare(m_learned / m_learned[0], m_true / m_true[0]),
     }
+    found = evidence(net, chunk_x, chunk_v)  # (judged from the learned model alone: train/identify.py)
+    per_slot = [0] * n_slots if learned.homogeneous else list(range(n_slots))
+    for key in ("mu", "e"):
+        se, ok = (found[key][k] for k in ("std_error", "identified"))
+        out[key]["std_error"] = [se[c] for c in per_slot]
+        out[key]["identified"] = [ok[c] for c in per_slot]
+        err = [abs(a - b) for a, b, c in zip(out[key]["learned"], out[key]["true"], per_slot) if ok[c]]
+        out[key]["max_abs_error_identified"] = max(err) if err else None
+    out["evidence_chunks"] = [found["chunks"][c] for c in per_slot]
     moments = truth.inertia.moments
     if moments.numel():
         out["moments"] = compare(learned.inertia.moments.detach().double().flatten(), moments.double().flatten())
