@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -44,6 +45,11 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     assert len(set(learned["mu"]["identifiable"])) == 1  # (homogeneous: one value, identified by any slot)
     assert len(set(learned["mu"]["std_error"])) == 1 and len(set(learned["evidence_chunks"])) == 1
     assert learned["evidence_chunks"][0] > 0
+    # μ and e refined by Gauss-Newton after the epochs, kept as they lower the validation loss, in their own checkpoint
+    refined = learned["refinement"]
+    assert refined["kept"] and refined["iterations"] > 0 and refined["val_loss_after"] < refined["val_loss_before"]
+    assert Path(learned["best_checkpoint"]).name.startswith("refined-best-")
+    assert learned["mu"]["learned"][0] != refined["mu_before"][0]
     assert len(learned["collisions"]) == len(learned["mu"]["true"]) and sum(learned["collisions"]) > 0
     assert learned["mu"]["true"][0] == pytest.approx(0.2) and learned["e"]["true"][0] == pytest.approx(0.8)
     config = json.loads((run / "config.json").read_text())
@@ -246,10 +252,19 @@ def test_summarize_recomputes_learned_json_and_keeps_the_counters(data_root, tmp
     stale = {k: v for k, v in learned.items() if not k.startswith("collisions") and k != "inertia"}
     (run / "learned.json").write_text(json.dumps(stale))
     assert summarize_run(run) == json.loads((run / "learned.json").read_text()) == learned
+    # a run trained before the refinement: summarize refines it as training would have
+    refined = Path(learned["best_checkpoint"])
+    older = {k: v for k, v in stale.items() if k != "refinement"}
+    older["best_checkpoint"] = str(refined.with_name(refined.name.removeprefix("refined-")))
+    refined.unlink()
+    (run / "learned.json").write_text(json.dumps(older))
+    again = summarize_run(run)
+    assert refined.is_file() and again["best_checkpoint"] == str(refined)
+    assert again["mu"]["learned"] == learned["mu"]["learned"] and again["refinement"]["kept"]
     moved = tmp_path / "moved"
     run.rename(moved)  # (the checkpoint path recorded is the old one: the run's own folder is used)
     assert summarize_run(moved)["mu"] == learned["mu"]
-    for ckpt in (moved / "checkpoints").glob("best*"):
+    for ckpt in (moved / "checkpoints").glob("*best*"):
         ckpt.unlink()
     with pytest.raises(ConfigError, match="best checkpoint .* is missing"):
         summarize_run(moved)

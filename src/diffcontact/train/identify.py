@@ -69,6 +69,12 @@ def information(
 ) -> tuple[torch.Tensor, float]:
     """JᵀJ (2, 2) of (μ, e) shared by the boolean mask ``slots`` (n_slots,), and the residuals' variance σ², from
     chunks x, v (B, L, P, d) (see the module docstring)."""
+    r, J = _jacobian(sim, params, x, v, dt, slots)
+    return J.T @ J, float(r.square().sum()) / max(r.numel() - 2, 1)
+
+
+def _jacobian(sim, params: Params, x, v, dt: float, slots: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The residuals r (n,) of chunks x, v and their Jacobian J (n, 2) in (μ, e) shared by ``slots``."""
     mu, e = float(params.mu[slots][0]), float(params.e[slots][0])
     r = _residuals(sim, params, x, v, dt)
     J = torch.stack(
@@ -77,8 +83,16 @@ def information(
             _derivative(lambda c: _residuals(sim, _with(params, slots, mu, c), x, v, dt), e, 0.0, 1.0),
         ],
         1,
-    )  # (n, 2)
-    return J.T @ J, float(r.square().sum()) / max(r.numel() - 2, 1)
+    )
+    return r, J
+
+
+def _pinv_solve(JtJ: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(JᵀJ)⁺ b over the directions the data fix, and the mask (2,) of properties with a share in one they do not."""
+    lam, vec = torch.linalg.eigh(JtJ)
+    fixed = lam > _SINGULAR * lam[-1].clamp_min(1e-300)
+    step = vec[:, fixed] @ ((vec[:, fixed].T @ b) / lam[fixed])
+    return step, (vec[:, ~fixed].abs() > 1e-6).any(1)
 
 
 def standard_errors(
@@ -87,11 +101,9 @@ def standard_errors(
     """The standard errors of (μ, e) shared by the boolean mask ``slots`` (n_slots,) from chunks x, v (B, L, P, d)
     (see the module docstring); inf where the data do not fix it."""
     JtJ, sigma2 = information(sim, params, x, v, dt, slots)
-    lam, vec = torch.linalg.eigh(JtJ)
-    fixed = lam > _SINGULAR * lam[-1].clamp_min(1e-300)
-    variance = (vec[:, fixed].square() / lam[fixed]).sum(1) * sigma2  # (the pseudo-inverse's diagonal)
-    free = (vec[:, ~fixed].abs() > 1e-6).any(1)  # (a property with a share in an unfixed direction)
-    se = torch.where(free, math.inf, variance.sqrt())
+    variance = torch.stack([_pinv_solve(JtJ, torch.eye(2, dtype=JtJ.dtype)[k])[0][k] for k in range(2)]) * sigma2
+    _, free = _pinv_solve(JtJ, torch.zeros(2, dtype=JtJ.dtype))  # (a property with a share in an unfixed direction)
+    se = torch.where(free, math.inf, variance.clamp_min(0).sqrt())
     return float(se[0]), float(se[1])
 
 
@@ -118,3 +130,55 @@ def evidence(net, chunk_x: torch.Tensor, chunk_v: torch.Tensor, tolerance: float
             out[key]["std_error"].append(float(f"{value:.3g}") if math.isfinite(value) else None)
             out[key]["identified"].append(bool(value <= tolerance / 2))
     return out
+
+
+def _coefficients(learned) -> list[torch.Tensor]:
+    """The slot mask (n_slots,) of each learned coefficient: one for all slots on a homogeneous task."""
+    if learned.homogeneous:
+        return [torch.ones(learned.n_slots, dtype=torch.bool)]
+    return [torch.arange(learned.n_slots) == c for c in range(learned.n_slots)]
+
+
+def refine(net, chunk_x: torch.Tensor, chunk_v: torch.Tensor, iterations: int = 10) -> dict:
+    """Gauss–Newton on each learned coefficient's (μ, e), every other property fixed, on the training chunks with a
+    collision of its slots (chunk_x, chunk_v (N, L, P, d)), in place on ``net.params`` (projected transforms).
+
+    Gradient descent leaves a coefficient short of its minimum where few contacts inform it (a weak gradient that
+    the decaying learning rate stops); the squared residuals of its chunks, a function of two numbers, are
+    minimised directly.  A step moves only along the directions the data fix (a pseudo-inverse: a plateau stays
+    where it is), is kept in μ ≥ 0, e ∈ [0, 1], and is halved until the squared residuals fall (at most 20 times).
+    Returns {"mu_before", "e_before": the coefficients before (lists), "iterations": the steps taken}."""
+    learned = net.params
+    before = {"mu_before": learned.mu_raw.detach().tolist(), "e_before": learned.e_raw.detach().tolist()}
+    if learned.mu_transform != "projected" or learned.e_transform != "projected":
+        return {**before, "iterations": 0, "skipped": "only the projected transforms hold μ and e as they are"}
+    work = copy.deepcopy(net).double()
+    sim, x, v = work.simulator, chunk_x.detach().double(), chunk_v.detach().double()
+    with torch.no_grad():
+        params = work.params()
+    params = params.replace(mu=params.mu.detach().clone(), e=params.e.detach().clone())
+    hit = chunk_slots(sim, params, x, v, net.dt)
+    steps = 0
+    for c, slots in enumerate(_coefficients(learned)):  # (a loop over the parameters, each a batched rollout)
+        mine = hit[:, slots].any(1)
+        if not mine.any():
+            continue
+        xs, vs = x[mine], v[mine]
+        for _ in range(iterations):
+            r, J = _jacobian(sim, params, xs, vs, net.dt, slots)
+            step, _ = _pinv_solve(J.T @ J, J.T @ r)
+            cost, theta = float(r.square().sum()), torch.stack([params.mu[slots][0], params.e[slots][0]])
+            for _ in range(20):
+                mu, e = float((theta[0] - step[0]).clamp_min(0)), float((theta[1] - step[1]).clamp(0, 1))
+                trial = _with(params, slots, mu, e)
+                if float(_residuals(sim, trial, xs, vs, net.dt).square().sum()) < cost:
+                    break
+                step = step / 2
+            else:
+                break  # (no step lowers the residuals: at the minimum, to rounding)
+            params, steps = trial, steps + 1
+            with torch.no_grad():
+                learned.mu_raw[c], learned.e_raw[c] = mu, e
+            if float(step.abs().max()) < 1e-9:
+                break
+    return {**before, "iterations": steps}

@@ -27,6 +27,7 @@ from diffcontact.run_dir import RunDir
 from diffcontact.train.coef_start import scan_coefficients
 from diffcontact.train.config import TrainConfig
 from diffcontact.train.datamodule import ContactDataModule
+from diffcontact.train.identify import refine
 from diffcontact.train.module import ContactLightningModule, quiet_lightning
 from diffcontact.train.summary import learned_summary
 
@@ -311,7 +312,44 @@ def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, process
         best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
     # (the best checkpoint is in this run's folder, also when the folder was moved: _RunCheckpoint)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
-    return _summary(chosen, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
+    splits = data.splits["train"], data.splits["val"]
+    refined, best = _refined(chosen, *splits, best, run.checkpoints, write=trainer.is_global_zero)
+    summary = _summary(chosen, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
+    return summary | ({"refinement": refined} if refined else {})
+
+
+def _refined(chosen: ContactLightningModule, train, val, best: str, folder: Path, write: bool) -> tuple[dict, str]:
+    """The chosen checkpoint's μ and e refined by Gauss–Newton on the ``train`` split's chunks
+    (``identify.refine``), kept if the loss on the ``val`` split's does not rise, and saved as ``folder``/refined-NAME
+    (``write``: this process writes it).  Returns the refinement's record ({} for a model without
+    learned contacts) and the checkpoint to use."""
+    if not chosen.learns_contacts or not best:
+        return {}, best
+    chosen.eval()
+
+    def val_loss() -> float:
+        with torch.no_grad():
+            return float(chosen.loss((val.chunk_x, val.chunk_v)))
+
+    started, before = time.perf_counter(), val_loss()
+    record = refine(chosen.net, train.chunk_x, train.chunk_v)
+    after = val_loss() if record["iterations"] else before
+    record |= {"val_loss_before": before, "val_loss_after": after}
+    if not after <= before:  # (worse on the validation split: the checkpoint as trained)
+        with torch.no_grad():
+            chosen.net.params.mu_raw.copy_(torch.tensor(record["mu_before"]))
+            chosen.net.params.e_raw.copy_(torch.tensor(record["e_before"]))
+        return record | {"kept": False, "seconds": time.perf_counter() - started}, best
+    record |= {"kept": True, "seconds": time.perf_counter() - started}
+    if not record["iterations"]:
+        return record, best
+    path = folder / f"refined-{Path(best).name}"
+    if write:
+        checkpoint = torch.load(best, map_location="cpu", weights_only=False)
+        for key in ("mu_raw", "e_raw"):
+            checkpoint["state_dict"][f"net.params.{key}"] = getattr(chosen.net.params, key).detach().clone()
+        atomic_write(path, lambda fh: torch.save(checkpoint, fh))
+    return record, str(path)
 
 
 def _settings(
@@ -426,7 +464,8 @@ def _counters(trainer: pl.Trainer, totals: dict, processes: int) -> dict:
 
 def summarize_run(run: str | Path) -> dict:
     """Recompute the learned-against-true part of ``run``/learned.json from its best checkpoint and training data
-    (after an upgrade of the summary); the run's counters and times are kept.  Returns the new summary."""
+    (after an upgrade of the summary), refining μ and e first if the run predates the refinement; the run's
+    counters and times are kept.  Returns the new summary."""
     from diffcontact.data.store import load_split
 
     run_dir = RunDir(run)
@@ -434,9 +473,13 @@ def summarize_run(run: str | Path) -> dict:
     best = run_dir.best_checkpoint()  # (in the run's own folder if it was moved)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
     config = chosen.task.config
-    train = load_split(Path(args["data_root"]) / config.name, "train", config)
+    dtype, folder = getattr(torch, args.get("dtype", "float32")), Path(args["data_root"]) / config.name
+    train, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
+    refined = {}
+    if "refinement" not in old:  # (a run trained before the refinement: refined now, as training does)
+        refined, old["best_checkpoint"] = _refined(chosen, train, val, str(best), run_dir.checkpoints, write=True)
     fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
-    summary = {**fresh, **kept}
+    summary = {**fresh, **kept} | ({"refinement": refined} if refined else {})
     write_json(run_dir.learned, summary)
     return summary
