@@ -323,7 +323,8 @@ def _refined(chosen: ContactLightningModule, train, val, best: str, folder: Path
     (``identify.refine``), kept if the loss on the ``val`` split's does not rise, and saved as ``folder``/refined-NAME
     (``write``: this process writes it).  Returns the refinement's record ({} for a model without
     learned contacts) and the checkpoint to use."""
-    if not chosen.learns_contacts or not best:
+    learned = chosen.learned
+    if not chosen.learns_contacts or not best or learned is None:
         return {}, best
     chosen.eval()
 
@@ -337,8 +338,8 @@ def _refined(chosen: ContactLightningModule, train, val, best: str, folder: Path
     record |= {"val_loss_before": before, "val_loss_after": after}
     if not after <= before:  # (worse on the validation split: the checkpoint as trained)
         with torch.no_grad():
-            chosen.net.params.mu_raw.copy_(torch.tensor(record["mu_before"]))
-            chosen.net.params.e_raw.copy_(torch.tensor(record["e_before"]))
+            learned.mu_raw.copy_(torch.tensor(record["mu_before"]))
+            learned.e_raw.copy_(torch.tensor(record["e_before"]))
         return record | {"kept": False, "seconds": time.perf_counter() - started}, best
     record |= {"kept": True, "seconds": time.perf_counter() - started}
     if not record["iterations"]:
@@ -347,7 +348,7 @@ def _refined(chosen: ContactLightningModule, train, val, best: str, folder: Path
     if write:
         checkpoint = torch.load(best, map_location="cpu", weights_only=False)
         for key in ("mu_raw", "e_raw"):
-            checkpoint["state_dict"][f"net.params.{key}"] = getattr(chosen.net.params, key).detach().clone()
+            checkpoint["state_dict"][f"net.params.{key}"] = getattr(learned, key).detach().clone()
         atomic_write(path, lambda fh: torch.save(checkpoint, fh))
     return record, str(path)
 
