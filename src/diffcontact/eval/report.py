@@ -248,14 +248,25 @@ def _slots(tasks, models, first, missing) -> list[str]:
             vecs = {m: _learned(first[t, m], key) for m in cms}
             truth = next(((first[t, m] or {})["learned"][key]["true"] for m in cms if vecs[m]), None)
             pub = published.SLOTS[t][key]
+            marks = {m: ((first[t, m] or {}).get("learned") or {}).get(key, {}).get("identified") for m in cms}
+            lines += [f"### {t}: learned {name} per contact slot (10 pairs, then 20 ball-wall)", ""]
+            if any(ok and not all(ok) for ok in marks.values()):
+                lines += [
+                    "A value in brackets is one its run marks not identified (learned.json: its standard error "
+                    "from the training data is above 0.005).",
+                    "",
+                ]
             lines += [
-                f"### {t}: learned {name} per contact slot (10 pairs, then 20 ball-wall)",
-                "",
                 "| slot | true | published CM-CD-CLNN | " + " | ".join(cms) + " |",
                 "|---|---|---|" + "---|" * len(cms),
             ]
             for i in range(len(pub)):
-                ours = [_num(vec[i]) if (vec := vecs[m]) else missing.get((t, m), "—") for m in cms]
+                ours = [
+                    (_num(vec[i]) if not marks[m] or marks[m][i] else f"({_num(vec[i])})")
+                    if (vec := vecs[m])
+                    else missing.get((t, m), "—")
+                    for m in cms
+                ]
                 lines.append(f"| {i} | {_num(truth[i] if truth else None)} | {pub[i]:.4f} | " + " | ".join(ours) + " |")
             lines.append("")
     return lines

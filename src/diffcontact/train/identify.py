@@ -95,15 +95,19 @@ def _pinv_solve(JtJ: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch
     return step, (vec[:, ~fixed].abs() > 1e-6).any(1)
 
 
+def _errors(JtJ: torch.Tensor, sigma2: float) -> torch.Tensor:
+    """(2,) the standard errors σ √diag((JᵀJ)⁻¹), inf for a property with a share in a direction not fixed."""
+    variance = torch.stack([_pinv_solve(JtJ, torch.eye(2, dtype=JtJ.dtype)[k])[0][k] for k in range(2)]) * sigma2
+    _, free = _pinv_solve(JtJ, torch.zeros(2, dtype=JtJ.dtype))
+    return torch.where(free, math.inf, variance.clamp_min(0).sqrt())
+
+
 def standard_errors(
     sim, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float, slots: torch.Tensor
 ) -> tuple[float, float]:
     """The standard errors of (μ, e) shared by the boolean mask ``slots`` (n_slots,) from chunks x, v (B, L, P, d)
     (see the module docstring); inf where the data do not fix it."""
-    JtJ, sigma2 = information(sim, params, x, v, dt, slots)
-    variance = torch.stack([_pinv_solve(JtJ, torch.eye(2, dtype=JtJ.dtype)[k])[0][k] for k in range(2)]) * sigma2
-    _, free = _pinv_solve(JtJ, torch.zeros(2, dtype=JtJ.dtype))  # (a property with a share in an unfixed direction)
-    se = torch.where(free, math.inf, variance.clamp_min(0).sqrt())
+    se = _errors(*information(sim, params, x, v, dt, slots))
     return float(se[0]), float(se[1])
 
 
@@ -139,14 +143,17 @@ def _coefficients(learned) -> list[torch.Tensor]:
     return [torch.arange(learned.n_slots) == c for c in range(learned.n_slots)]
 
 
-def refine(net, chunk_x: torch.Tensor, chunk_v: torch.Tensor, iterations: int = 10) -> dict:
+def refine(
+    net, chunk_x: torch.Tensor, chunk_v: torch.Tensor, iterations: int = 10, tolerance: float = TOLERANCE
+) -> dict:
     """Gauss–Newton on each learned coefficient's (μ, e), every other property fixed, on the training chunks with a
     collision of its slots (chunk_x, chunk_v (N, L, P, d)), in place on ``net.params`` (projected transforms).
 
     Gradient descent leaves a coefficient short of its minimum where few contacts inform it (a weak gradient that
     the decaying learning rate stops); the squared residuals of its chunks, a function of two numbers, are
-    minimised directly.  A step moves only along the directions the data fix (a pseudo-inverse: a plateau stays
-    where it is), is kept in μ ≥ 0, e ∈ [0, 1], and is halved until the squared residuals fall (at most 20 times).
+    minimised directly.  Only the properties the data identify at the start move (a standard error at most
+    ``tolerance / 2``, as in :func:`evidence`): a weakly fixed one would follow the noise of a few chunks.  A step is
+    kept in μ ≥ 0, e ∈ [0, 1], and is halved until the squared residuals fall (at most 20 times).
     Returns {"mu_before", "e_before": the coefficients before (lists), "iterations": the steps taken}."""
     learned = net.params
     before = {"mu_before": learned.mu_raw.detach().tolist(), "e_before": learned.e_raw.detach().tolist()}
@@ -164,8 +171,13 @@ def refine(net, chunk_x: torch.Tensor, chunk_v: torch.Tensor, iterations: int = 
         if not mine.any():
             continue
         xs, vs = x[mine], v[mine]
-        for _ in range(iterations):
+        for i in range(iterations):
             r, J = _jacobian(sim, params, xs, vs, net.dt, slots)
+            if i == 0:
+                free = ~(_errors(J.T @ J, float(r.square().sum()) / max(r.numel() - 2, 1)) <= tolerance / 2)
+                if free.all():
+                    break
+            J = J.masked_fill(free, 0.0)  # (a property not identified stays: its column out of the step)
             step, _ = _pinv_solve(J.T @ J, J.T @ r)
             cost, theta = float(r.square().sum()), torch.stack([params.mu[slots][0], params.e[slots][0]])
             for _ in range(20):
