@@ -467,14 +467,14 @@ def summarize_run(run: str | Path) -> dict:
     """Recompute the learned-against-true part of ``run``/learned.json from its best checkpoint and training data
     (after an upgrade of the summary), refining μ and e first if the run predates the refinement; the run's
     counters and times are kept.  Returns the new summary."""
-    from diffcontact.data.store import load_split
+    from diffcontact.data.store import dataset_folder, load_split
 
     run_dir = RunDir(run)
     old, args = run_dir.read_learned(), run_dir.read_config()["args"]
     best = run_dir.best_checkpoint()  # (in the run's own folder if it was moved)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
     config = chosen.task.config
-    dtype, folder = getattr(torch, args.get("dtype", "float32")), Path(args["data_root"]) / config.name
+    dtype, folder = getattr(torch, args.get("dtype", "float32")), dataset_folder(args["data_root"], config.name)
     train, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
     refined = {}
     if "refinement" not in old:  # (a run trained before the refinement: refined now, as training does)
