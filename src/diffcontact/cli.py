@@ -364,12 +364,22 @@ def reproduce(
         "--jobs",
         "-j",
         min=1,
-        help="Runs at a time, one process each (default: one per available CPU, as memory allows: 1.5 GB each).",
+        help="Runs at a time, one process each (default: one per available CPU, as memory allows: 1.5 GB each; "
+        "with --backend ray or slurm every run at once, the cluster queues them).",
     ),
     data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick or --noise)."),
     noise: float = typer.Option(
         0.0, "--noise", help="Std of the observation noise on the training and validation chunks (0 = none)."
     ),
+    backend: str = typer.Option(
+        "local", "--backend", help="Where the runs go: local (this machine), ray (a Ray cluster) or slurm (submitit)."
+    ),
+    address: str = typer.Option(
+        None, "--address", help="With --backend ray: the cluster to join ('auto': this node's; default: a new one)."
+    ),
+    epochs: int = typer.Option(None, "--epochs", min=1, help="Epochs of every run (default: each task's preset)."),
+    partition: str = typer.Option(None, "--partition", help="With --backend slurm: the Slurm partition."),
+    time_min: int = typer.Option(240, "--time", help="With --backend slurm: each job's time limit in minutes."),
     threads: int = typer.Option(
         None,
         "--threads",
@@ -384,10 +394,11 @@ def reproduce(
     import sys
 
     from diffcontact.errors import ConfigError
+    from diffcontact.eval.backends import Backend
     from diffcontact.eval.reproduce import reproduce as run_matrix
     from diffcontact.threads import available_cpus, default_jobs
 
-    jobs = jobs or default_jobs()
+    jobs = jobs or (default_jobs() if backend == "local" else ALL_AT_ONCE)
     per_run = threads or max(1, available_cpus() // jobs)
     _threads(per_run)  # (this process generates the datasets; each run has its own process)
     with _user_errors():
@@ -398,8 +409,13 @@ def reproduce(
             raise ConfigError(f"--seeds {seeds}: not integers") from err
         run_matrix(
             tasks, models, seed_list, out, quick=quick, jobs=jobs, threads=per_run, data=data or None, echo=typer.echo,
-            noise=noise, command=" ".join(["diffcontact", *sys.argv[1:]]),
+            noise=noise, backend=Backend(backend, address=address, partition=partition, time_min=time_min),
+            epochs=epochs,
+            command=" ".join(["diffcontact", *sys.argv[1:]]),
         )  # fmt: skip
+
+
+ALL_AT_ONCE = 100_000  # (--jobs of a cluster backend: every cell submitted, the cluster queues them)
 
 
 @bench_app.command("near-psd")

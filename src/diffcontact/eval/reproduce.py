@@ -18,13 +18,14 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from diffcontact.config import available_tasks
 from diffcontact.data.noise import check_noise
 from diffcontact.errors import ConfigError
+from diffcontact.eval.backends import Backend, cell_runner
 from diffcontact.eval.evaluate import evaluated
 from diffcontact.eval.loading import registered_models
 from diffcontact.eval.report import write_report
@@ -50,6 +51,7 @@ class Cell:
     run: Path
     todo: str
     note: str = ""
+    epochs: int | None = None  # (None: the preset's, or one with --quick)
 
     @property
     def label(self) -> str:
@@ -83,9 +85,10 @@ def run_cell(cell: Cell, data: Path, quick: bool, threads: int = 1) -> dict:
     env = dict(thread_env(threads), PYTHONUNBUFFERED="1")
     cmd = [sys.executable, "-m", "diffcontact.eval.worker", cell.task, cell.model, str(cell.seed), str(cell.run)]
     cmd += [str(data), *(["--train"] if cell.todo == "train" else [])]
+    epochs = cell.epochs or (QUICK["epochs"] if quick else None)
+    cmd += ["--epochs", str(epochs)] if epochs else []
     if quick:
-        cmd += ["--epochs", str(QUICK["epochs"]), "--batch-size", str(QUICK["batch_size"])]
-        cmd += ["--frames", str(QUICK["eval_frames"])]
+        cmd += ["--batch-size", str(QUICK["batch_size"]), "--frames", str(QUICK["eval_frames"])]
     cell.run.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with open(cell.run / "reproduce.log", "a") as log:
@@ -229,6 +232,8 @@ def reproduce(
     threads: int = 1,
     data: str | Path | None = None,
     noise: float = 0.0,
+    backend: Backend | None = None,
+    epochs: int | None = None,
     progress_every: float = 60.0,
     echo: Callable[[str], None] = print,
     command: str = "",
@@ -238,7 +243,9 @@ def reproduce(
 
     ``threads``: threads of each run's process.  ``data``: dataset root (default ``data``, or OUT/data with
     ``quick`` or ``noise``).  ``noise``: the standard deviation of the observation noise on the training and
-    validation chunks (:mod:`diffcontact.data.noise`; the test trajectories stay clean).  ``progress_every``:
+    validation chunks (:mod:`diffcontact.data.noise`; the test trajectories stay clean).  ``backend``: where the
+    cells run (:mod:`diffcontact.eval.backends`; default this machine), ``jobs`` of them at a time.  ``epochs``: of
+    every run trained (default: each task's preset, or one with ``quick``).  ``progress_every``:
     seconds between progress lines while runs are going (one is also printed whenever a run starts or ends).
     """
     from diffcontact.data.generate import generate_dataset
@@ -255,7 +262,10 @@ def reproduce(
         raise ConfigError(f"jobs = {jobs} is not >= 1")
     if threads < 1:
         raise ConfigError(f"threads = {threads} is not >= 1")
+    if epochs is not None and (isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 1):
+        raise ConfigError(f"epochs = {epochs!r} is not a whole number >= 1")
     noise = check_noise(noise)
+    backend = backend or Backend()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     settings = _settings_file(out, quick, noise)
@@ -264,21 +274,24 @@ def reproduce(
     sizes: dict[str, Any] = {k: QUICK[k] for k in ("n_train", "n_val", "n_test", "frames")} if quick else {}
     for task in tasks:
         generate_dataset(task, data, noise=noise, progress=False, echo=echo, **sizes)
-    cells = plan(out, tasks, models, seeds)
+    cells = [replace(c, epochs=epochs) for c in plan(out, tasks, models, seeds)]
     todo = [c for c in cells if c.todo in ("train", "evaluate")]
     for c in cells:
         if c.todo == "missing":
             echo(f"{c.label}: {c.note}")
     done = sum(c.todo == "done" for c in cells)
+    jobs = min(jobs, max(len(todo), 1))  # (a cluster backend may have every cell in flight)
     progress = Progress(
         len(todo) + done, done, jobs, echo, expected_seconds(out, todo), pending=[c.label for c in todo]
     )
 
+    runner = cell_runner(backend, out, threads)
+
     def job(cell: Cell) -> dict:
         progress.start(cell.label)
         try:
-            record = run_cell(cell, data, quick, threads)
-        except Exception as err:  # (an OS error starting a subprocess: the other runs go on)
+            record = runner(cell, data, quick)
+        except Exception as err:  # (an OS error starting a subprocess, a cluster's job lost: the other runs go on)
             record = {"status": "failed", "error": f"{type(err).__name__}: {err}"}
         progress.finish(cell.label, record["status"] + (f" ({record['error']})" if "error" in record else ""))
         return record
@@ -290,7 +303,13 @@ def reproduce(
             if pending and not finished:  # (a start or an end shows the progress itself)
                 progress.show()
     settings["sessions"].append(
-        {"started": began, "seconds": time.perf_counter() - started, "runs": len(todo), "command": command}
+        {
+            "started": began,
+            "seconds": time.perf_counter() - started,
+            "runs": len(todo),
+            "command": command,
+            "backend": backend.name,
+        }
     )
     settings["data"] = str(data)
     write_json(out / "reproduce.json", settings)

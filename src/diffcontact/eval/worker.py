@@ -13,6 +13,21 @@ import sys
 from pathlib import Path
 
 
+def die_with_parent() -> None:
+    """Have the kernel kill this process when the process that started it dies (Linux; elsewhere nothing): a cell
+    whose driver or cluster worker was killed leaves no trainer behind to hold the run's lock against its retry."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import os
+    import signal
+
+    parent = os.getppid()
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # (PR_SET_PDEATHSIG)
+    if os.getppid() != parent:  # (the parent died before the call)
+        os._exit(1)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m diffcontact.eval.worker", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("task")
@@ -31,8 +46,11 @@ def main(argv: list[str] | None = None) -> int:
     from diffcontact.run_dir import RunDir
     from diffcontact.train.run import train_run
 
+    die_with_parent()
     try:
-        if args.train:
+        if args.train and RunDir(args.run).learned.is_file():  # (a retry after the training ended: never twice)
+            print(f"{args.run}: trained already (learned.json); evaluating only", flush=True)
+        elif args.train:
             settings = dict(
                 seed=args.seed, out=args.run, data_root=args.data, epochs=args.epochs, batch_size=args.batch_size
             )

@@ -26,6 +26,7 @@ from diffcontact.state import Params, State
 TOLERANCE = 0.01  # (identified: a 95 % interval within ± this)
 _STEP = 1e-5  # (finite-difference step of μ and e)
 _SINGULAR = 1e-12  # (an eigenvalue of JᵀJ below this times its largest: a direction the data do not fix)
+_HALVINGS = 8  # (a Gauss-Newton step halved at most this often: 1/256 of it, then the refinement stops)
 
 
 def chunk_slots(sim, params: Params, chunk_x: torch.Tensor, chunk_v: torch.Tensor, dt: float) -> torch.Tensor:
@@ -153,7 +154,8 @@ def refine(
     the decaying learning rate stops); the squared residuals of its chunks, a function of two numbers, are
     minimised directly.  Only the properties the data identify at the start move (a standard error at most
     ``tolerance / 2``, as in :func:`evidence`): a weakly fixed one would follow the noise of a few chunks.  A step is
-    kept in μ ≥ 0, e ∈ [0, 1], and is halved until the squared residuals fall (at most 20 times).
+    kept in μ ≥ 0, e ∈ [0, 1], and is halved until the squared residuals fall (at most 8 times); the
+    refinement of a coefficient stops when they fall by less than a millionth.
     Returns {"mu_before", "e_before": the coefficients before (lists), "iterations": the steps taken}."""
     learned = net.params
     before = {"mu_before": learned.mu_raw.detach().tolist(), "e_before": learned.e_raw.detach().tolist()}
@@ -171,19 +173,22 @@ def refine(
         if not mine.any():
             continue
         xs, vs = x[mine], v[mine]
+        free = torch.zeros(2, dtype=torch.bool)  # (the properties not identified at the start: they stay)
         for i in range(iterations):
             r, J = _jacobian(sim, params, xs, vs, net.dt, slots)
             if i == 0:
                 free = ~(_errors(J.T @ J, float(r.square().sum()) / max(r.numel() - 2, 1)) <= tolerance / 2)
                 if free.all():
                     break
-            J = J.masked_fill(free, 0.0)  # (a property not identified stays: its column out of the step)
+            J = J.masked_fill(free, 0.0)  # (their columns out of the step)
             step, _ = _pinv_solve(J.T @ J, J.T @ r)
             cost, theta = float(r.square().sum()), torch.stack([params.mu[slots][0], params.e[slots][0]])
-            for _ in range(20):
+            new_cost = cost
+            for _ in range(_HALVINGS):
                 mu, e = float((theta[0] - step[0]).clamp_min(0)), float((theta[1] - step[1]).clamp(0, 1))
                 trial = _with(params, slots, mu, e)
-                if float(_residuals(sim, trial, xs, vs, net.dt).square().sum()) < cost:
+                new_cost = float(_residuals(sim, trial, xs, vs, net.dt).square().sum())
+                if new_cost < cost:
                     break
                 step = step / 2
             else:
@@ -191,6 +196,6 @@ def refine(
             params, steps = trial, steps + 1
             with torch.no_grad():
                 learned.mu_raw[c], learned.e_raw[c] = mu, e
-            if float(step.abs().max()) < 1e-9:
-                break
+            if float(step.abs().max()) < 1e-9 or new_cost > (1 - 1e-6) * cost:
+                break  # (converged: the step or the fall of the residuals is below rounding's scale)
     return {**before, "iterations": steps}
