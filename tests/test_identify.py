@@ -42,8 +42,7 @@ def test_the_information_is_the_finite_difference_hessian_of_the_squared_residua
     hit = chunk_slots(sim, base, x, v, task.dt).any(1)  # (one μ and e shared by the four walls)
     xs, vs = x[hit], v[hit]
     assert 10 < len(xs) < len(x)
-    JtJ, sigma2 = information(sim, base, xs, vs, task.dt, slots)
-    assert sigma2 < 1e-20
+    JtJ = information(sim, base, xs, vs, task.dt, slots)
 
     def S(mu: float, e: float) -> float:  # (independently of train/identify.py: a rollout of every chunk)
         params = base.replace(mu=torch.full_like(base.mu, mu), e=torch.full_like(base.e, e))

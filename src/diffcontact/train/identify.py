@@ -6,10 +6,13 @@ training chunks with a collision of its slots under the learned model (a contact
 when each step is replayed from the recorded frame before it).  Around the learned θ = (μ_c, e_c) the residuals
 r(θ) of those chunks (predicted − recorded positions in m and velocities in m/s, frames 1 … L − 1, every property
 but θ as learned) are linearised by forward differences, J = ∂r/∂θ, and the standard errors are those of nonlinear
-least squares (the Laplace approximation of a Gaussian likelihood): the square roots of the diagonal of
-σ² (JᵀJ)⁻¹, with σ² = ‖r‖² / (n − 2) the residuals' variance.  A property nothing in the data moves (μ of a slot
-whose every contact sticks or has no tangent, e of a slot whose restitution never binds) has J's column 0 and an
-infinite standard error.  A property is ``identified`` when its standard error is at most ``tolerance / 2`` (its
+least squares, clustered by chunk: the square roots of the diagonal of H⁻¹ M H⁻¹ · B/(B − 1), with H = JᵀJ,
+M = Σ_c g_c g_cᵀ, g_c = J_cᵀ r_c the chunk c's share of the gradient, and B chunks.  With independent residuals of
+one variance σ² this is the Laplace approximation σ² H⁻¹; unlike it, it holds when a chunk's residuals are
+correlated (noise on its first frame runs through all of them) or the model is not exact (real data), where σ² H⁻¹
+is far too small.  A property nothing in the data moves (μ of a slot whose every contact sticks or has no tangent,
+e of a slot whose restitution never binds) has J's column 0 and an infinite standard error, as has one seen in a
+single chunk.  A property is ``identified`` when its standard error is at most ``tolerance / 2`` (its
 95 % interval within ± tolerance).  What the standard error does not see: a model error elsewhere that the
 property compensates (it is conditional on every other property as learned).
 """
@@ -66,13 +69,11 @@ def _derivative(fn, value: float, high: float, at_value: torch.Tensor) -> torch.
     return (fn(b) - at_value) / (b - value)
 
 
-def information(
-    sim, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float, slots: torch.Tensor
-) -> tuple[torch.Tensor, float]:
-    """JᵀJ (2, 2) of (μ, e) shared by the boolean mask ``slots`` (n_slots,), and the residuals' variance σ², from
-    chunks x, v (B, L, P, d) (see the module docstring)."""
-    r, J = _jacobian(sim, params, x, v, dt, slots)
-    return J.T @ J, float(r.square().sum()) / max(r.numel() - 2, 1)
+def information(sim, params: Params, x: torch.Tensor, v: torch.Tensor, dt: float, slots: torch.Tensor) -> torch.Tensor:
+    """JᵀJ (2, 2) of (μ, e) shared by the boolean mask ``slots`` (n_slots,), from chunks x, v (B, L, P, d): the
+    Gauss–Newton Hessian of ½‖r‖² (see the module docstring)."""
+    _, J = _jacobian(sim, params, x, v, dt, slots)
+    return J.T @ J
 
 
 def _jacobian(sim, params: Params, x, v, dt: float, slots: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -97,10 +98,18 @@ def _pinv_solve(JtJ: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch
     return step, (vec[:, ~fixed].abs() > 1e-6).any(1)
 
 
-def _errors(JtJ: torch.Tensor, sigma2: float) -> torch.Tensor:
-    """(2,) the standard errors σ √diag((JᵀJ)⁻¹), inf for a property with a share in a direction not fixed."""
-    variance = torch.stack([_pinv_solve(JtJ, torch.eye(2, dtype=JtJ.dtype)[k])[0][k] for k in range(2)]) * sigma2
-    _, free = _pinv_solve(JtJ, torch.zeros(2, dtype=JtJ.dtype))
+def _errors(r: torch.Tensor, J: torch.Tensor, chunks: int) -> torch.Tensor:
+    """(2,) the standard errors clustered by chunk from residuals r (n,) and J (n, 2) of ``chunks`` chunks (laid
+    out as :func:`_residuals`: positions then velocities, each chunk by chunk); inf for a property with a share in
+    a direction the data do not fix, and for both with fewer than 2 chunks."""
+    H = J.T @ J
+    _, free = _pinv_solve(H, torch.zeros(2, dtype=H.dtype))
+    if chunks < 2:
+        return torch.full((2,), math.inf, dtype=H.dtype)
+    owner = torch.arange(chunks).repeat_interleave(r.numel() // (2 * chunks)).repeat(2)  # (the chunk of each entry)
+    g = torch.zeros(chunks, 2, dtype=J.dtype).index_add_(0, owner, J * r[:, None])  # (B, 2) each chunk's gradient
+    H_inv = torch.stack([_pinv_solve(H, torch.eye(2, dtype=H.dtype)[k])[0] for k in range(2)])  # (the pseudo-inverse)
+    variance = (H_inv @ (g.T @ g) @ H_inv).diagonal() * chunks / (chunks - 1)
     return torch.where(free, math.inf, variance.clamp_min(0).sqrt())
 
 
@@ -109,7 +118,8 @@ def standard_errors(
 ) -> tuple[float, float]:
     """The standard errors of (μ, e) shared by the boolean mask ``slots`` (n_slots,) from chunks x, v (B, L, P, d)
     (see the module docstring); inf where the data do not fix it."""
-    se = _errors(*information(sim, params, x, v, dt, slots))
+    r, J = _jacobian(sim, params, x, v, dt, slots)
+    se = _errors(r, J, len(x))
     return float(se[0]), float(se[1])
 
 
@@ -153,50 +163,62 @@ def refine(
 
     Gradient descent leaves a coefficient short of its minimum where few contacts inform it (a weak gradient that
     the decaying learning rate stops); the squared residuals of its chunks, a function of two numbers, are
-    minimised directly.  Only the properties the data identify at the start move (a standard error at most
-    ``tolerance / 2``, as in :func:`evidence`): a weakly fixed one would follow the noise of a few chunks.  A step is
-    kept in μ ≥ 0, e ∈ [0, 1], and is halved until the squared residuals fall (at most 8 times); the
-    refinement of a coefficient stops when they fall by less than a millionth.
-    Returns {"mu_before", "e_before": the coefficients before (lists), "iterations": the steps taken}."""
+    minimised directly.  A step moves only along the directions the data fix (a pseudo-inverse), is kept in μ ≥ 0,
+    e ∈ [0, 1], and is halved until the squared residuals fall (at most 8 times); a coefficient's refinement stops
+    when they fall by less than a millionth.  At its end, a property that moved must be identified there (a
+    standard error at most ``tolerance / 2``, as in :func:`evidence`); otherwise the coefficient goes back to its
+    value as trained: a weakly fixed property would follow the noise of a few chunks.
+    Returns {"mu_before", "e_before": the coefficients before (lists), "iterations": the steps kept,
+    "reverted": the coefficients put back}."""
     learned = net.params
     before = {"mu_before": learned.mu_raw.detach().tolist(), "e_before": learned.e_raw.detach().tolist()}
     if learned.mu_transform != "projected" or learned.e_transform != "projected":
-        return {**before, "iterations": 0, "skipped": "only the projected transforms hold μ and e as they are"}
+        return {**before, "iterations": 0, "reverted": [], "skipped": "only projected transforms hold μ, e as they are"}
     work = copy.deepcopy(net).double()
     sim, x, v = work.simulator, chunk_x.detach().double(), chunk_v.detach().double()
     with torch.no_grad():
         params = work.params()
     params = params.replace(mu=params.mu.detach().clone(), e=params.e.detach().clone())
     hit = chunk_slots(sim, params, x, v, net.dt)
-    steps = 0
+    steps, reverted = 0, []
     for c, slots in enumerate(_coefficients(learned)):  # (a loop over the parameters, each a batched rollout)
         mine = hit[:, slots].any(1)
         if not mine.any():
             continue
         xs, vs = x[mine], v[mine]
-        free = torch.zeros(2, dtype=torch.bool)  # (the properties not identified at the start: they stay)
-        for i in range(iterations):
-            r, J = _jacobian(sim, params, xs, vs, net.dt, slots)
-            if i == 0:
-                free = ~(_errors(J.T @ J, float(r.square().sum()) / max(r.numel() - 2, 1)) <= tolerance / 2)
-                if free.all():
-                    break
-            J = J.masked_fill(free, 0.0)  # (their columns out of the step)
-            step, _ = _pinv_solve(J.T @ J, J.T @ r)
-            cost, theta = float(r.square().sum()), torch.stack([params.mu[slots][0], params.e[slots][0]])
-            new_cost = cost
-            for _ in range(_HALVINGS):
-                mu, e = float((theta[0] - step[0]).clamp_min(0)), float((theta[1] - step[1]).clamp(0, 1))
-                trial = _with(params, slots, mu, e)
-                new_cost = float(_residuals(sim, trial, xs, vs, net.dt).square().sum())
-                if new_cost < cost:
-                    break
-                step = step / 2
-            else:
-                break  # (no step lowers the residuals: at the minimum, to rounding)
-            params, steps = trial, steps + 1
-            with torch.no_grad():
-                learned.mu_raw[c], learned.e_raw[c] = mu, e
-            if float(step.abs().max()) < 1e-9 or new_cost > (1 - 1e-6) * cost:
-                break  # (converged: the step or the fall of the residuals is below rounding's scale)
-    return {**before, "iterations": steps}
+        start = params
+        fitted, taken = _gauss_newton(sim, params, xs, vs, net.dt, slots, iterations)
+        if not taken:
+            continue
+        r, J = _jacobian(sim, fitted, xs, vs, net.dt, slots)
+        moved = torch.stack([fitted.mu[slots][0] != start.mu[slots][0], fitted.e[slots][0] != start.e[slots][0]])
+        if bool((moved & ~(_errors(r, J, len(xs)) <= tolerance / 2)).any()):
+            reverted.append(c)
+            continue
+        params, steps = fitted, steps + taken
+        with torch.no_grad():
+            learned.mu_raw[c], learned.e_raw[c] = float(fitted.mu[slots][0]), float(fitted.e[slots][0])
+    return {**before, "iterations": steps, "reverted": reverted}
+
+
+def _gauss_newton(sim, params: Params, x, v, dt: float, slots: torch.Tensor, iterations: int) -> tuple[Params, int]:
+    """``refine``'s steps for the coefficient of ``slots`` on chunks x, v: the params after, and the steps taken."""
+    taken = 0
+    for _ in range(iterations):
+        r, J = _jacobian(sim, params, x, v, dt, slots)
+        step, _ = _pinv_solve(J.T @ J, J.T @ r)
+        cost, theta = float(r.square().sum()), torch.stack([params.mu[slots][0], params.e[slots][0]])
+        new_cost, trial = cost, params
+        for _ in range(_HALVINGS):
+            mu, e = float((theta[0] - step[0]).clamp_min(0)), float((theta[1] - step[1]).clamp(0, 1))
+            trial = _with(params, slots, mu, e)
+            new_cost = float(_residuals(sim, trial, x, v, dt).square().sum())
+            if new_cost < cost:
+                break
+            step = step / 2
+        else:
+            break  # (no step lowers the residuals: at the minimum, to rounding)
+        params, taken = trial, taken + 1
+        if float(step.abs().max()) < 1e-9 or new_cost > (1 - 1e-6) * cost:
+            break  # (converged: the step or the fall of the residuals is below rounding's scale)
+    return params, taken
