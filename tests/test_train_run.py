@@ -45,11 +45,14 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     assert len(set(learned["mu"]["identifiable"])) == 1  # (homogeneous: one value, identified by any slot)
     assert len(set(learned["mu"]["std_error"])) == 1 and len(set(learned["evidence_chunks"])) == 1
     assert learned["evidence_chunks"][0] > 0
-    # μ and e refined by Gauss-Newton after the epochs, kept as they lower the validation loss, in their own checkpoint
+    # μ and e refined by Gauss-Newton after the epochs: kept only if the validation loss does not rise, and then in
+    # their own checkpoint (after 2 epochs the slot is not identified at its refined value, so it goes back)
     refined = learned["refinement"]
-    assert refined["kept"] and refined["iterations"] > 0 and refined["val_loss_after"] < refined["val_loss_before"]
-    assert Path(learned["best_checkpoint"]).name.startswith("refined-best-")
-    assert learned["mu"]["learned"][0] != refined["mu_before"][0]
+    assert {"mu_before", "e_before", "iterations", "reverted", "val_loss_before", "val_loss_after"} <= set(refined)
+    assert not refined["kept"] or refined["val_loss_after"] <= refined["val_loss_before"]
+    changed = refined["kept"] and refined["iterations"] > 0
+    assert Path(learned["best_checkpoint"]).name.startswith("refined-best-") == changed
+    assert (learned["mu"]["learned"][0] != refined["mu_before"][0]) == changed
     assert len(learned["collisions"]) == len(learned["mu"]["true"]) and sum(learned["collisions"]) > 0
     assert learned["mu"]["true"][0] == pytest.approx(0.2) and learned["e"]["true"][0] == pytest.approx(0.8)
     config = json.loads((run / "config.json").read_text())
@@ -253,14 +256,17 @@ def test_summarize_recomputes_learned_json_and_keeps_the_counters(data_root, tmp
     (run / "learned.json").write_text(json.dumps(stale))
     assert summarize_run(run) == json.loads((run / "learned.json").read_text()) == learned
     # a run trained before the refinement: summarize refines it as training would have
-    refined = Path(learned["best_checkpoint"])
+    best = Path(learned["best_checkpoint"])
     older = {k: v for k, v in stale.items() if k != "refinement"}
-    older["best_checkpoint"] = str(refined.with_name(refined.name.removeprefix("refined-")))
-    refined.unlink()
+    older["best_checkpoint"] = str(best.with_name(best.name.removeprefix("refined-")))
+    if best.name.startswith("refined-"):
+        best.unlink()
     (run / "learned.json").write_text(json.dumps(older))
     again = summarize_run(run)
-    assert refined.is_file() and again["best_checkpoint"] == str(refined)
-    assert again["mu"]["learned"] == learned["mu"]["learned"] and again["refinement"]["kept"]
+    assert again["best_checkpoint"] == learned["best_checkpoint"] and Path(again["best_checkpoint"]).is_file()
+    assert again["mu"]["learned"] == learned["mu"]["learned"] and again["refinement"] == learned["refinement"] | {
+        "seconds": again["refinement"]["seconds"]
+    }
     moved = tmp_path / "moved"
     run.rename(moved)  # (the checkpoint path recorded is the old one: the run's own folder is used)
     assert summarize_run(moved)["mu"] == learned["mu"]
