@@ -161,7 +161,7 @@ def refine(
     chunk_v: torch.Tensor,
     iterations: int = 10,
     tolerance: float = TOLERANCE,
-    max_chunks: int = 128,
+    max_chunks: int = 32,
 ) -> dict:
     """Gauss–Newton on each learned coefficient's (μ, e), every other property fixed, on the training chunks with a
     collision of its slots (chunk_x, chunk_v (N, L, P, d)), in place on ``net.params`` (projected transforms).
@@ -173,8 +173,9 @@ def refine(
     when they fall by less than a millionth.  At its end, a property that moved must be identified there (a
     standard error at most ``tolerance / 2``, as in :func:`evidence`); otherwise the coefficient goes back to its
     value as trained: a weakly fixed property would follow the noise of a few chunks.  A coefficient seen in more
-    than ``max_chunks`` chunks is refined on a seeded subset of that many (the real cube's 378 windows of 80 frames
-    took 16 minutes on a loaded machine; a homogeneous task's one coefficient sees every collision).
+    than ``max_chunks`` chunks is refined on a seeded subset of that many: a homogeneous task's one coefficient sees
+    every collision, and on the real cube's windows of 80 frames all 378 took 16 minutes, 128 of them 12 (on a
+    machine loaded 2 to 1).
     Returns {"mu_before", "e_before": the coefficients before (lists), "iterations": the steps kept,
     "reverted": the coefficients put back}."""
     learned = net.params
