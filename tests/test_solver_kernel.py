@@ -210,3 +210,26 @@ def test_degenerate_gradient_is_reproducible(monkeypatch):
     for sel, row in ((slice(None), b), (slice(None), b), (slice(b, b + 1), 0)):
         for g0, g1 in zip(first, grads(sel)):
             assert torch.equal(g0[b], g1[row])
+
+
+def test_the_adjoint_skips_a_failed_element_whose_unfinished_state_would_break_its_least_squares():
+    # a failed solve (its impulses were set to 0) keeps the interior-point method's unfinished state; its K can be
+    # anything, here non-finite, and LAPACK's SVD in the least-squares adjoint does not converge on it (a noisy Rope
+    # training stopped so at epoch 323). The backward pass skips it: its gradient is that of a constant, 0.
+    from diffcontact.solver.implicit import adjoint_solve
+    from diffcontact.solver.kernel import IPMResult
+    from diffcontact.solver.status import Status
+
+    B, K, d = 2, 16, 1
+    rng = np.random.default_rng(0)
+    M = rng.standard_normal((B, K * d, K * d))
+    A = np.ascontiguousarray(M @ np.swapaxes(M, 1, 2) + np.eye(K * d))
+    A[1, 0, 0] = np.nan
+    res = IPMResult(A, np.ones((B, K * d)), np.zeros((B, K), bool), np.ones((B, K), bool), d)
+    res.status[1] = int(Status.NUMERICAL)
+    g = rng.standard_normal((B, K * d))
+    g[1] = 0.0
+    with pytest.raises(np.linalg.LinAlgError, match="SVD did not converge"):
+        adjoint_solve(res, g)
+    u, v = adjoint_solve(res, g, skip=res.status >= int(Status.MAX_ITER))
+    assert not u[1].any() and not v[1].any() and np.isfinite(u[0]).all() and np.isfinite(v[0]).all()

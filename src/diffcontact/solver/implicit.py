@@ -28,6 +28,7 @@ import torch
 from diffcontact.solver import kernel, kkt, scaling
 from diffcontact.solver.kernel import IPMResult
 from diffcontact.solver.kkt import contact_dims
+from diffcontact.solver.status import is_failure
 
 
 @dataclass
@@ -67,7 +68,11 @@ class ImplicitConeQP(torch.autograd.Function):
         res = sol.result
         d = res.d
         gf = np.ascontiguousarray(_as_dtype(grad_f, torch.float64).numpy())
-        u, v_l = adjoint_solve(res, scaling.unscale(sol.gamma, sol.T, gf))
+        failed = is_failure(res.status)  # (counted failures: their impulses were set to 0, a constant)
+        if np.count_nonzero(failed):
+            gf = gf.copy()
+            gf[failed] = 0.0  # (so their gradients are 0, and their unsolved state never enters the adjoint)
+        u, v_l = adjoint_solve(res, scaling.unscale(sol.gamma, sol.T, gf), skip=failed)
         need = np.array(ctx.needs_input_grad[:4], dtype=np.bool_)
         arrays = (u, v_l, sol.z, gf, sol.A, sol.q, sol.T, sol.S, sol.gamma, res.lam_l, res.on_l, sol.lower_scale)
         grads = scaling.chain_rule_batch(*arrays, sol.slide, contact_dims(d), need)
@@ -80,13 +85,18 @@ def _as_dtype(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return t if t.dtype == dtype else t.to(dtype)
 
 
-def adjoint_solve(res: IPMResult, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def adjoint_solve(res: IPMResult, g: np.ndarray, skip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Solve Kᵀ[u; v] = [g; 0] (module docstring); returns u: (B, n) and the rays' v: (B, K).
 
     Solved in the compiled kernel (``kernel.adjoint``); where K is singular (a degenerate solution: a contact exactly
-    at a stick/slip or touch/separate switch) the dense system is solved by least squares instead.
+    at a stick/slip or touch/separate switch) the dense system is solved by least squares instead.  ``skip`` (B,)
+    bool: elements whose solve failed (g is 0 there): u = v = 0, without a least-squares solve of their K, which
+    holds the interior-point method's unfinished state (a LAPACK SVD that does not converge on it).
     """
     u, v_l, ok = kernel.adjoint(res, g)
+    if skip is not None and np.count_nonzero(skip):
+        u[skip], v_l[skip] = 0.0, 0.0
+        ok = ok | skip
     if np.count_nonzero(ok) < len(ok):
         u[~ok], v_l[~ok] = _adjoint_lstsq(res, g, ~ok)
     return u, v_l
