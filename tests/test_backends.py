@@ -122,3 +122,17 @@ def test_a_ray_worker_killed_mid_cell_is_retried_and_resumes_from_its_checkpoint
     assert "training from the start" not in log  # (the retry resumed from checkpoints/last.ckpt)
     learned = json.loads(run.learned.read_text())
     assert learned["epochs_trained"] == 4 and (run.path / "eval" / "metrics.json").is_file()
+
+
+@pytest.mark.slow  # (trains one epoch)
+def test_the_worker_trains_afresh_only_when_the_last_checkpoint_does_not_load(tmp_path):
+    from diffcontact.data.generate import generate_dataset
+    from diffcontact.eval import worker
+
+    generate_dataset("BP1", tmp_path / "data", n_train=8, n_val=4, n_test=4, frames=20, progress=False, echo=None)
+    run = RunDir(tmp_path / "run")
+    run.checkpoints.mkdir(parents=True)
+    run.last_checkpoint.write_bytes(b"not a checkpoint")  # (as a kill half-way through its write could leave it)
+    args = ["BP1", MODEL, "0", str(run.path), str(tmp_path / "data"), "--train", "--epochs", "1", "--frames", "10"]
+    assert worker.main(args) == 0
+    assert json.loads(run.learned.read_text())["epochs_trained"] == 1

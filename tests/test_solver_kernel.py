@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -215,7 +216,7 @@ def test_degenerate_gradient_is_reproducible(monkeypatch):
 def test_the_adjoint_skips_a_failed_element_whose_unfinished_state_would_break_its_least_squares():
     # a failed solve (its impulses were set to 0) keeps the interior-point method's unfinished state; its K can be
     # anything, here non-finite, and LAPACK's SVD in the least-squares adjoint does not converge on it (a noisy Rope
-    # training stopped so at epoch 323). The backward pass skips it: its gradient is that of a constant, 0.
+    # training stopped so). The backward pass skips it: its gradient is that of a constant, 0.
     from diffcontact.solver.implicit import adjoint_solve
     from diffcontact.solver.kernel import IPMResult
     from diffcontact.solver.status import Status
@@ -229,7 +230,33 @@ def test_the_adjoint_skips_a_failed_element_whose_unfinished_state_would_break_i
     res.status[1] = int(Status.NUMERICAL)
     g = rng.standard_normal((B, K * d))
     g[1] = 0.0
-    with pytest.raises(np.linalg.LinAlgError, match="SVD did not converge"):
-        adjoint_solve(res, g)
+    try:  # (without the skip, the unfinished state's NaN reaches the gradient, or LAPACK raises on it)
+        u, _ = adjoint_solve(res, g)
+        assert not np.isfinite(u[1]).all()
+    except np.linalg.LinAlgError:
+        pass
     u, v = adjoint_solve(res, g, skip=res.status >= int(Status.MAX_ITER))
     assert not u[1].any() and not v[1].any() and np.isfinite(u[0]).all() and np.isfinite(v[0]).all()
+
+
+def test_the_pseudo_inverse_of_a_kkt_matrix_on_which_lapacks_svd_fails(monkeypatch):
+    # a finite KKT matrix of norm 1 from a noisy Rope training, on which numpy's SVD (LAPACK gesdd) did not converge
+    # here; whether it does depends on the machine's LAPACK kernels, so the failure is forced
+    from diffcontact.solver.implicit import pseudo_inverse
+
+    K = np.load(Path(__file__).parent / "data" / "degenerate_kkt.npy")[None]  # (Kᵀ, as the adjoint inverts it)
+
+    def fails(*args, **kwargs):
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    monkeypatch.setattr(np.linalg, "pinv", fails)
+    P = pseudo_inverse(K)
+    assert np.isfinite(P).all()
+    scale = np.abs(K).max()
+    assert np.abs(K @ P @ K - K).max() < 1e-6 * scale  # (the Moore-Penrose conditions, to the cut-off's accuracy)
+    assert np.abs(P @ K @ P - P).max() < 1e-6 * np.abs(P).max()
+    assert np.allclose(P @ K, np.swapaxes(P @ K, -1, -2), atol=1e-6) and np.allclose(
+        K @ P, np.swapaxes(K @ P, -1, -2), atol=1e-6
+    )
+    regular = K + 0.5 * np.eye(K.shape[-1])  # (a regular matrix: the inverse, either way)
+    assert np.allclose(pseudo_inverse(regular) @ regular, np.eye(K.shape[-1]), atol=1e-9)

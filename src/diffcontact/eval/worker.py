@@ -41,6 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=None, help="Frames rolled out in the evaluation.")
     args = p.parse_args(argv)
 
+    import torch
+
     from diffcontact.errors import DiffContactError
     from diffcontact.eval.evaluate import evaluate_run
     from diffcontact.run_dir import RunDir
@@ -54,16 +56,15 @@ def main(argv: list[str] | None = None) -> int:
             settings = dict(
                 seed=args.seed, out=args.run, data_root=args.data, epochs=args.epochs, batch_size=args.batch_size
             )
-            resume = RunDir(args.run).last_checkpoint.is_file()
-            try:
-                train_run(args.task, args.model, resume=resume, progress=False, **settings)
-            except Exception as err:  # (a checkpoint damaged by the interruption: train afresh, once)
-                if not resume:
-                    raise
-                print(f"resuming failed ({type(err).__name__}: {err}); training from the start", flush=True)
-                for part in ("checkpoints", "logs"):  # (a fresh run is refused beside another run's checkpoints)
-                    shutil.rmtree(args.run / part, ignore_errors=True)
-                train_run(args.task, args.model, progress=False, **settings)
+            last = RunDir(args.run).last_checkpoint
+            if last.is_file():
+                try:  # (only a checkpoint that does not load is thrown away: an error in training is not)
+                    torch.load(last, map_location="cpu", weights_only=False)
+                except Exception as err:  # (damaged by the interruption: train afresh)
+                    print(f"{last} does not load ({type(err).__name__}: {err}); training from the start", flush=True)
+                    for part in ("checkpoints", "logs"):  # (a fresh run is refused beside another run's checkpoints)
+                        shutil.rmtree(args.run / part, ignore_errors=True)
+            train_run(args.task, args.model, resume=last.is_file(), progress=False, **settings)
         m = evaluate_run(args.run, task=args.task, data_root=args.data, frames=args.frames)
     except (DiffContactError, FloatingPointError) as err:
         print(f"{type(err).__name__}: {err}", file=sys.stderr)

@@ -116,6 +116,22 @@ def _adjoint_lstsq(res: IPMResult, g: np.ndarray, sel: np.ndarray) -> tuple[np.n
     # The least-squares solution of least norm, by the pseudo-inverse with LAPACK's default cut-off of singular
     # values (that of numpy.linalg.lstsq).  (torch.linalg.lstsq gave results that varied from run to run in the
     # last digits, amplified by the conditioning of the degenerate K.)
-    pinv = np.linalg.pinv(np.swapaxes(Kmat, -1, -2), rcond=Kmat.shape[-1] * np.finfo(np.float64).eps)
-    sol = np.matmul(pinv, rhs[..., None])[..., 0]
+    sol = np.matmul(pseudo_inverse(np.swapaxes(Kmat, -1, -2)), rhs[..., None])[..., 0]
     return sol[:, :n], sol[:, n : n + K]
+
+
+def pseudo_inverse(M: np.ndarray) -> np.ndarray:
+    """The pseudo-inverse of each (m, m) matrix of M (B, m, m), with LAPACK's default cut-off of singular values.
+
+    LAPACK's divide-and-conquer SVD (gesdd, numpy's) fails to converge on some degenerate KKT matrices, finite and
+    of norm 1 (one from a noisy Rope training is ``tests/data/degenerate_kkt.npy``).  Then the pseudo-inverse comes
+    from the symmetric eigendecomposition of MᵀM instead: M⁺ = (MᵀM)⁺ Mᵀ, keeping the singular values above
+    √(m·ε) of the largest (squaring halves the digits the cut-off can resolve)."""
+    eps = M.shape[-1] * np.finfo(np.float64).eps
+    try:
+        return np.linalg.pinv(M, rcond=eps)
+    except np.linalg.LinAlgError:
+        G = np.swapaxes(M, -1, -2) @ M
+        w, V = np.linalg.eigh(G)  # (B, m), (B, m, m), ascending
+        inv = np.where(w > eps * w[..., -1:], 1.0 / np.where(w > 0, w, 1.0), 0.0)
+        return (V * inv[..., None, :]) @ np.swapaxes(V, -1, -2) @ np.swapaxes(M, -1, -2)
