@@ -70,7 +70,9 @@ def test_two_processes_learn_what_one_learns_and_sum_their_counters(data_root, t
         lr=2e-2,
         lr_scaling="none (the learning rate is not scaled with the effective batch)",
     )
-    # the files of one writer: one log of each kind, one last and one best checkpoint, no lock left
+    # the files of one writer: one log of each kind, one last and one best checkpoint (and the refined one), no lock
     assert sorted(p.name for p in run.iterdir()) == ["checkpoints", "config.json", "learned.json", "logs", "loss.png"]
     assert [p.name for p in (run / "logs" / "csv").iterdir()] == ["version_0"]
-    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["best-epoch=7.ckpt", "last.ckpt"]
+    refined = json.loads((run / "learned.json").read_text())["refinement"]  # (written once: by rank 0)
+    extra = ["refined-best-epoch=7.ckpt"] if refined["kept"] and refined["iterations"] else []
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["best-epoch=7.ckpt", "last.ckpt", *extra]

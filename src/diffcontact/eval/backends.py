@@ -19,12 +19,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from diffcontact.errors import ConfigError
-
-if TYPE_CHECKING:
-    from diffcontact.eval.reproduce import Cell
 
 BACKENDS = ("local", "ray", "slurm")
 
@@ -75,7 +72,7 @@ class CellJob:
     """One cell as a submitit job: run to the end, or requeued when Slurm preempts it or its time runs out (it
     resumes from the run's last checkpoint)."""
 
-    def __init__(self, cell: Cell, data: Path, quick: bool, threads: int):
+    def __init__(self, cell: Any, data: Path, quick: bool, threads: int):  # (cell: a reproduce.Cell)
         self.cell, self.data, self.quick, self.threads = cell, data, quick, threads
 
     def __call__(self) -> dict:
@@ -89,8 +86,9 @@ class CellJob:
         return DelayedSubmission(self)
 
 
-def cell_runner(backend: Backend, out: Path, threads: int) -> Callable[[Cell, Path, bool], dict]:
-    """A function that runs one cell on ``backend`` to its end and returns its record (as ``run_cell``); blocking,
+def cell_runner(backend: Backend, out: Path, threads: int) -> Callable[[Any, Path, bool], dict]:
+    """A function that runs one cell (a ``reproduce.Cell``) on ``backend`` to its end and returns its record (as
+    ``run_cell``); blocking,
     so the driver's pool of ``jobs`` threads bounds the cells in flight.  ``out``: the sweep's folder (submitit
     writes its job logs under OUT/submitit)."""
     from diffcontact.eval.reproduce import run_cell
