@@ -90,25 +90,23 @@ def _jacobian(sim, params: Params, x, v, dt: float, slots: torch.Tensor) -> tupl
     return r, J
 
 
-def _pinv_solve(JtJ: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(JᵀJ)⁺ b over the directions the data fix, and the mask (2,) of properties with a share in one they do not."""
+def _pinv(JtJ: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(JᵀJ)⁺ (2, 2) over the directions the data fix, and the mask (2,) of properties with a share in one they do
+    not."""
     lam, vec = torch.linalg.eigh(JtJ)
     fixed = lam > _SINGULAR * lam[-1].clamp_min(1e-300)
-    step = vec[:, fixed] @ ((vec[:, fixed].T @ b) / lam[fixed])
-    return step, (vec[:, ~fixed].abs() > 1e-6).any(1)
+    return (vec[:, fixed] / lam[fixed]) @ vec[:, fixed].T, (vec[:, ~fixed].abs() > 1e-6).any(1)
 
 
 def _errors(r: torch.Tensor, J: torch.Tensor, chunks: int) -> torch.Tensor:
     """(2,) the standard errors clustered by chunk from residuals r (n,) and J (n, 2) of ``chunks`` chunks (laid
     out as :func:`_residuals`: positions then velocities, each chunk by chunk); inf for a property with a share in
     a direction the data do not fix, and for both with fewer than 2 chunks."""
-    H = J.T @ J
-    _, free = _pinv_solve(H, torch.zeros(2, dtype=H.dtype))
+    H_inv, free = _pinv(J.T @ J)
     if chunks < 2:
-        return torch.full((2,), math.inf, dtype=H.dtype)
+        return torch.full((2,), math.inf, dtype=J.dtype)
     owner = torch.arange(chunks).repeat_interleave(r.numel() // (2 * chunks)).repeat(2)  # (the chunk of each entry)
     g = torch.zeros(chunks, 2, dtype=J.dtype).index_add_(0, owner, J * r[:, None])  # (B, 2) each chunk's gradient
-    H_inv = torch.stack([_pinv_solve(H, torch.eye(2, dtype=H.dtype)[k])[0] for k in range(2)])  # (the pseudo-inverse)
     variance = (H_inv @ (g.T @ g) @ H_inv).diagonal() * chunks / (chunks - 1)
     return torch.where(free, math.inf, variance.clamp_min(0).sqrt())
 
@@ -217,7 +215,7 @@ def _gauss_newton(sim, params: Params, x, v, dt: float, slots: torch.Tensor, ite
     taken = 0
     for _ in range(iterations):
         r, J = _jacobian(sim, params, x, v, dt, slots)
-        step, _ = _pinv_solve(J.T @ J, J.T @ r)
+        step = _pinv(J.T @ J)[0] @ (J.T @ r)
         cost, theta = float(r.square().sum()), torch.stack([params.mu[slots][0], params.e[slots][0]])
         new_cost, trial = cost, params
         for _ in range(_HALVINGS):
