@@ -16,6 +16,7 @@ on a file system every node sees.  Ray and submitit are optional dependencies (`
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -59,12 +60,14 @@ class Backend:
 
 
 def _engine(module: str) -> Any:
+    """The optional engine ``module`` (``ray``, ``submitit`` or one of their submodules), imported by name so that the
+    package type-checks without it."""
     try:
-        return __import__(module)
+        return importlib.import_module(module)
     except ImportError:
         raise ConfigError(
-            f"--backend {'ray' if module == 'ray' else 'slurm'} needs {module}, an optional dependency: "
-            f"pip install {module}"
+            f"--backend {'ray' if module == 'ray' else 'slurm'} needs {module.split('.')[0]}, an optional "
+            f"dependency: pip install {module.split('.')[0]}"
         ) from None
 
 
@@ -81,9 +84,7 @@ class CellJob:
         return run_cell(self.cell, self.data, self.quick, self.threads)
 
     def checkpoint(self) -> Any:  # (submitit's hook on preemption and timeout: the same job again)
-        from submitit.helpers import DelayedSubmission
-
-        return DelayedSubmission(self)
+        return _engine("submitit.helpers").DelayedSubmission(self)
 
 
 def cell_runner(backend: Backend, out: Path, threads: int) -> Callable[[Any, Path, bool], dict]:
@@ -101,10 +102,7 @@ def cell_runner(backend: Backend, out: Path, threads: int) -> Callable[[Any, Pat
             ray.init(address=backend.address, include_dashboard=False, log_to_driver=False, configure_logging=False)
         remote = ray.remote(num_cpus=threads, max_retries=backend.retries)(run_cell)
         return lambda cell, data, quick: ray.get(remote.remote(cell, data, quick, threads))
-    _engine("submitit")
-    from submitit import AutoExecutor
-
-    executor = AutoExecutor(folder=out / "submitit", cluster=backend.cluster)
+    executor = _engine("submitit").AutoExecutor(folder=out / "submitit", cluster=backend.cluster)
     settings: dict[str, Any] = {"timeout_min": backend.time_min, "cpus_per_task": threads, "name": "diffcontact"}
     if backend.partition:
         settings["slurm_partition"] = backend.partition
