@@ -260,3 +260,28 @@ def test_the_pseudo_inverse_of_a_kkt_matrix_on_which_lapacks_svd_fails(monkeypat
     )
     regular = K + 0.5 * np.eye(K.shape[-1])  # (a regular matrix: the inverse, either way)
     assert np.allclose(pseudo_inverse(regular) @ regular, np.eye(K.shape[-1]), atol=1e-9)
+
+
+def test_a_start_far_below_the_solution_is_not_taken_for_a_stall():
+    # 52 bend and stretch limits in use on a rope of 50 nodes (frictionless, d = 1; a training batch of the
+    # simulator's own states).  From the default start the gap grows for eight iterations while the infeasibility
+    # falls: a stall rule on the residual alone ended the method at iteration 8 (MAX_ITER, residual 0.12), and so
+    # did both retries.
+    from solver_oracle import TOL_F, clarabel_solve
+
+    from diffcontact.solver import solve_cone_qp
+
+    data = np.load(Path(__file__).parent / "data" / "rope50_limits.npz")
+    A, q = data["A"][None], data["q"][None]
+    K = A.shape[-1]
+    mu, lower, active = np.zeros((1, K)), np.zeros((1, K)), np.ones((1, K), dtype=bool)
+    A_s, c, l_hat, T, *_, on_q, on_l, _ = scaling.scale_batch(A, q, mu, lower, active, contact_dims(1))
+    trace = np.zeros((1, 61, 4))
+    first = _iterates(A_s, T, c, l_hat, on_q, on_l, 1, trace)
+    assert first.status.tolist() == [Status.CONVERGED] and first.iterations.item() <= 20
+    gap = trace[0, : first.iterations.item(), 2]
+    assert gap[8] > 2 * gap[1]  # (the case the rule must let pass: the gap rose from iteration 1 to 8)
+    f, info = solve_cone_qp(torch.from_numpy(A), torch.from_numpy(q), torch.zeros(1, K), return_info=True)
+    assert info.status.tolist() == [Status.CONVERGED]
+    ref, _ = clarabel_solve(A[0], q[0], mu[0], lower[0], 1)
+    assert np.abs(f[0].numpy() - ref).max() <= TOL_F * max(1.0, np.abs(ref).max())

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from torch.nn.functional import pad
 
 from diffcontact.contact.kinds import ContactKind
 from diffcontact.state import with_anchors
@@ -42,9 +43,13 @@ class Detector:
         self.P, self.d, self.anchors = n_points, d, anchors
         self.dc = max((k.dc for k in self.kinds), default=d)
         self.count = sum(k.count for k in self.kinds)
-        n_ext = n_points + anchors.shape[0]
-        # static one-hot placement (K, m, P) of each kind's Jacobian terms (anchor columns dropped)
-        self._place = [torch.nn.functional.one_hot(k.cols, n_ext)[..., :n_points].double() for k in self.kinds]
+        # static point index (K_max, m) of every candidate's Jacobian terms, m the most of any kind; anchors and
+        # padding point to column P, which is dropped
+        self._m = max((k.cols.shape[1] for k in self.kinds), default=0)
+        self._cols = torch.cat(
+            [pad(torch.where(k.cols < n_points, k.cols, n_points), (0, self._m - k.cols.shape[1]), value=n_points)
+             for k in self.kinds]
+        ) if self.kinds else torch.zeros(0, 0, dtype=torch.long)  # fmt: skip
         if self.kinds:
             self.slot = torch.cat([k.slot for k in self.kinds])
             self.frictionless = torch.cat([torch.full((k.count,), k.dc < self.dc) for k in self.kinds])
@@ -63,19 +68,31 @@ class Detector:
             return x.new_zeros(x.shape[0], 0)
         return torch.cat([k.evaluate(ext, rows=False)[0] for k in self.kinds], dim=1)
 
-    def jacobian(self, x: torch.Tensor) -> torch.Tensor:
-        """Rows of every candidate (B, K_max, dc, D), in the (P, d) layout, anchors dropped."""
+    def jacobian(self, x: torch.Tensor, order: torch.Tensor | None = None) -> torch.Tensor:
+        """Rows (B, K, dc, D) in the (P, d) layout, anchors dropped, of every candidate (K = K_max), or of the
+        candidates ``order`` (B, K) (indices into K_max) of each batch element.
+
+        Each candidate's few terms are placed at its points (a scatter): the cost is that of writing the rows, not
+        of a product over all points.
+        """
         ext = self.extend(x)
         B = x.shape[0]
-        blocks = []
-        for kind, place in zip(self.kinds, self._place):  # a handful of declared kinds, not contacts
+        terms = []
+        for kind in self.kinds:  # a handful of declared kinds, not contacts
             _, vals = kind.evaluate(ext, rows=True)  # (B, K, m, dck, d)
             if vals is None:
                 raise TypeError(f"{type(kind).__name__}.evaluate(rows=True) returned no rows")
-            padded = torch.nn.functional.pad(vals, (0, 0, 0, self.dc - kind.dc))
-            rows = torch.einsum("kmp,bkmrd->bkrpd", place.to(x), padded)
-            blocks.append(rows.reshape(B, kind.count, self.dc, self.P * self.d))
-        return torch.cat(blocks, dim=1)
+            terms.append(pad(vals, (0, 0, 0, self.dc - kind.dc, 0, self._m - vals.shape[2])))
+        vals = torch.cat(terms, dim=1)  # (B, K_max, m, dc, d)
+        cols = self._cols.expand(B, -1, -1)
+        if order is not None:
+            vals = torch.gather(vals, 1, order[:, :, None, None, None].expand(-1, -1, *vals.shape[2:]))
+            cols = torch.gather(cols, 1, order[:, :, None].expand(-1, -1, self._m))
+        K = cols.shape[1]
+        index = cols[:, :, None, :, None].expand(B, K, self.dc, self._m, self.d)
+        rows = torch.zeros(B, K, self.dc, self.P + 1, self.d, dtype=x.dtype, device=x.device)
+        rows = rows.scatter_add(3, index, vals.transpose(2, 3))
+        return rows[:, :, :, : self.P].reshape(B, K, self.dc, self.P * self.d)
 
     def detect(self, x: torch.Tensor) -> ContactSet | None:
         """The active contacts at positions x (B, P, d), or None if no batch element is in contact."""
@@ -97,9 +114,7 @@ class Detector:
             order = torch.argsort((~hit).to(torch.int8), dim=1, stable=True)[:, :k_c]  # active first
             active = torch.gather(hit, 1, order)
             gap = torch.gather(gap_all[index], 1, order) * active
-        xs = x[index]
-        J = self.jacobian(xs)
-        J = torch.gather(J, 1, order[:, :, None, None].expand(-1, -1, self.dc, J.shape[-1]))
+        J = self.jacobian(x[index], order)
         J = (J * active[:, :, None, None]).reshape(len(index), k_c * self.dc, -1)
         return ContactSet(
             index=index,

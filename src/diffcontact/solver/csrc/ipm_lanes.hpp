@@ -422,7 +422,8 @@ static V worst(const Work<D>& w, double sign) {
 struct Loop {
   M run;                  // lanes still iterating
   V degree;               // number of rays and cones in use (0: nothing to solve, z = 0)
-  V best_res, best_age;   // residual of the best iterate, iterations since it
+  V best_res, best_age;   // residual of the best iterate, iterations since the last progress
+  V best_inf;             // least infeasibility max(pres, dres) / zmax so far
   V zmax, gap;            // max(1, ‖z‖∞) and the duality gap of the current iterate
   V tau, step;            // centring target and step length of the current iteration
   i64 stat[LANES], its[LANES];
@@ -519,9 +520,12 @@ STAGE V residuals(Work<D>& w, Loop& s, V& pres, V& dres) {
 }
 
 // Keep the best iterate; end the lanes that converged (res ≤ ipm_tol), diverged (‖z‖∞ > 1e12: UNBOUNDED), went
-// non-finite or stalled (no better iterate in 5 iterations).
+// non-finite or stalled: 5 iterations without progress, where progress is a better iterate or an infeasibility
+// (inf = max(pres, dres) / zmax) at most 0.9 of the least so far.  (From a start far below the solution's size the
+// gap grows for several iterations while the infeasibility falls: a rope of 50 nodes, 52 stretch and bend limits
+// in use, has its best residual at iteration 3 and converges at 14.)
 template <int D>
-STAGE void keep_best(Work<D>& w, const SolveArgs& o, Loop& s, V res) {
+STAGE void keep_best(Work<D>& w, const SolveArgs& o, Loop& s, V res, V inf) {
   const int K = w.K, n = w.n;
   s.run &= finite(res);  // a non-finite residual ends the lane (status by its best iterate, in finish)
   M better = s.run & (res < s.best_res);
@@ -529,7 +533,9 @@ STAGE void keep_best(Work<D>& w, const SolveArgs& o, Loop& s, V res) {
     s.best_res = sel(better, res, s.best_res);
     take_point(better, n, K, w.zb, w.slb, w.llb, w.sqb, w.lqb, w.z, w.s_l, w.lam_l, w.s_q, w.lam_q);
   }
-  s.best_age = sel(better, splat(0.0), s.best_age + 1.0);
+  M feasible = s.run & (inf <= 0.9 * s.best_inf);
+  s.best_inf = sel(s.run & (inf < s.best_inf), inf, s.best_inf);
+  s.best_age = sel(better | feasible, splat(0.0), s.best_age + 1.0);
   M conv = s.run & (res <= o.ipm_tol);
   M unb = s.run & ~conv & (s.zmax > 1e12);
   for (int l = 0; l < LANES; l++) {
@@ -737,7 +743,8 @@ static void solve_group(Work<D>& w, const SolveArgs& o, i64* status, i64* iters_
   Loop s;
   initial_point(w, o, s);
   initial_scaling(w);
-  s.best_res = splat(__builtin_inf()), s.best_age = splat(0.0), s.tau = splat(0.0), s.step = splat(0.0);
+  s.best_res = splat(__builtin_inf()), s.best_inf = s.best_res, s.best_age = splat(0.0);
+  s.tau = splat(0.0), s.step = splat(0.0);
   for (i64 it = 0; it <= o.max_iter; it++) {
     V pres, dres;
     V res = residuals(w, s, pres, dres);
@@ -747,7 +754,7 @@ static void solve_group(Work<D>& w, const SolveArgs& o, i64* status, i64* iters_
           double* tr = trace[l] + 4 * it;
           tr[0] = pres[l], tr[1] = dres[l], tr[2] = s.gap[l], tr[3] = s.step[l];
         }
-    keep_best(w, o, s, res);
+    keep_best(w, o, s, res, vmax(pres, dres) / s.zmax);
     if (it == o.max_iter || !any(s.run)) break;
     for (int l = 0; l < LANES; l++) s.its[l] += s.run[l] ? 1 : 0;
     scale_and_factor(w, s);
