@@ -218,3 +218,21 @@ COMMANDS = ["train", "generate", "simulate", "evaluate", "reproduce", "bench sol
 def test_every_command_takes_threads(command):
     res = CliRunner().invoke(app, [*command.split(), "--help"], env={"COLUMNS": "200"})
     assert res.exit_code == 0 and "--threads" in res.output
+
+
+def test_one_thread_runs_its_block_on_one_thread_and_restores_the_setting():
+    import torch
+
+    from diffcontact.threads import one_thread
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with one_thread():
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+        with pytest.raises(ZeroDivisionError), one_thread():
+            1 / 0
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -18,7 +18,8 @@ from __future__ import annotations
 import math
 import os
 import sys
-from collections.abc import MutableMapping
+from collections.abc import Iterator, MutableMapping
+from contextlib import contextmanager
 from pathlib import Path
 
 QUIET_ENV = {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
@@ -131,6 +132,25 @@ def set_threads(threads: int | None = None) -> int:
     # (numba.config, numba's documented name, is set up at run time: its typing knows neither it nor its attributes)
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))  # pyright: ignore[reportPrivateImportUsage, reportAttributeAccessIssue]
     return threads
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """torch, and MKL's LAPACK under it, on one thread inside the block.  For the batched small-matrix LAPACK calls of
+    the physics path (least squares of 20-400 contacts): with waiting threads that sleep (:data:`QUIET_ENV`) every
+    one of their many small parallel regions wakes the others, and on 2 threads they ran 1.6-3.4× slower than on one
+    (a 50-node rope's data generated 3.3× slower, half of it system time)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    if threads == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def thread_env(threads: int, environ: MutableMapping[str, str] | None = None) -> dict[str, str]:

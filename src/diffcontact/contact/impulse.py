@@ -22,6 +22,7 @@ from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import inverse_factor_blocks
 from diffcontact.solver.contact_solver import ContactSolver
 from diffcontact.state import Params
+from diffcontact.threads import one_thread
 
 if TYPE_CHECKING:
     from diffcontact.systems.base import System
@@ -112,9 +113,11 @@ class ContactModel:
             if A is None:
                 raise ValueError("the effective-mass lift needs A, the contact-space inverse inertia")
             A = A.detach().to(xs)
-            return (A @ torch.linalg.lstsq(A, vd, driver="gelsd").solution)[..., 0]
+            with one_thread():
+                return (A @ torch.linalg.lstsq(A, vd, driver="gelsd").solution)[..., 0]
         Jc = contacts.J.to(xs).detach()
-        y = torch.linalg.lstsq(Jc, vd, driver="gelsd").solution  # J_C⁺ v_d, (B', D, 1)
+        with one_thread():
+            y = torch.linalg.lstsq(Jc, vd, driver="gelsd").solution  # J_C⁺ v_d, (B', D, 1)
         if constraints.count:
             JE = constraints.jac(xs)
             L = torch.linalg.cholesky(JE @ JE.mT)
