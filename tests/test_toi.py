@@ -269,3 +269,46 @@ def test_one_toi_step_of_a_rope_limit_passes_gradcheck():
 
     x0, v0 = x[:1, 10].clone().requires_grad_(True), v[:1, 10].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(one_step, (x0, v0), eps=1e-7, atol=1e-5, rtol=1e-4)
+
+
+def _lstsq_target(constraints, xs, contacts, dt, compensation, A, lift):
+    """The penetration target by a rank-revealing least squares alone (SVD, gelsd): the definition."""
+    vd = torch.zeros(*contacts.active.shape, contacts.dc, dtype=xs.dtype)
+    vd[..., 0] = -compensation * contacts.gap / dt
+    vd = vd.reshape(len(xs), -1, 1)
+    if lift == "effective-mass":
+        return (A @ torch.linalg.lstsq(A, vd, driver="gelsd").solution)[..., 0]
+    J = contacts.J
+    y = torch.linalg.lstsq(J, vd, driver="gelsd").solution
+    if constraints.count:
+        JE = constraints.jac(xs)
+        y = y - JE.mT @ torch.linalg.solve(JE @ JE.mT, JE @ y)
+    return (J @ y)[..., 0]
+
+
+@pytest.mark.parametrize("name,frames", [("Rope", 60), ("CP3", 60), ("Gyro", 100), ("BD5", 60), ("Cube", 250)])
+def test_penetration_target_agrees_with_a_rank_revealing_least_squares(name, frames):
+    # the target takes a Cholesky solve where the rows in use are far from rank-deficient, and the SVD elsewhere:
+    # the same answer either way, on frames of the task's own rollouts (float64), the Cube's resting ones included
+    # (A of rank 6 in 12 rows)
+    from diffcontact.contact.effective_mass import effective_inverse_inertia
+    from diffcontact.dynamics.inertia import inverse_factor_blocks
+
+    task = build_task(name)
+    sim = simulator_for(task)
+    model = sim.contact_model
+    with torch.no_grad():
+        x, _, _ = sim.rollout(task.sample(8, 0), task.params, task.dt, frames)
+        flat = x.flatten(0, 1)
+        hit = (task.system.detector.gaps(flat) < 0).any(1)
+        xs_all = flat[hit]
+        contacts = task.system.detector.detect(xs_all)
+        assert contacts is not None and len(contacts.index) >= 5
+        xs = xs_all[contacts.index]
+        _, A = effective_inverse_inertia(
+            inverse_factor_blocks(task.params.inertia), task.system.constraints, xs, contacts.J
+        )
+        got = model.target_velocity(task.system.constraints, xs, contacts, task.dt, A)
+        want = _lstsq_target(task.system.constraints, xs, contacts, task.dt, model.compensation, A, model.lift)
+    scale = want.abs().max().clamp_min(1e-12)
+    assert (got - want).abs().max() <= 1e-9 * scale

@@ -96,12 +96,32 @@ MASS_RATIO = {
     },
 }
 
-# H.5: the 5-step trajectory error (mean, 95 % half width) of CM-CD-CLNN on CM-generated data
+# H.5: the 5-step trajectory error (mean, 95 % half width) on CM-generated data: CM-CD-CLNN on four tasks, and every
+# model on the ropes of 50, 100 and 200 nodes
 TRAJECTORY_ERROR = {
     "BP5-e": {"CM-CD-CLNN": (2.341e-5, 1.285e-5)},
     "CP3": {"CM-CD-CLNN": (3.848e-3, 9.51e-4)},
     "CP3-e": {"CM-CD-CLNN": (2.832e-3, 3.64e-4)},
     "Gyro": {"CM-CD-CLNN": (2.389e-3, 1.357e-3)},
+    # the rope scaling (ER{n}k50, every model)
+    "Rope50": {
+        "CM-CD-CLNN": (1.973e-3, 4.73e-4),
+        "MLP-CD-CLNN": (1.847e-2, 2.53e-3),
+        "IN-CP-CLNN": (2.306e-2, 2.12e-3),
+        "IN-CP-SP": (2.932e-2, 2.05e-3),
+    },
+    "Rope100": {
+        "CM-CD-CLNN": (9.39e-4, 3.26e-4),
+        "MLP-CD-CLNN": (1.081e-2, 8.9e-4),
+        "IN-CP-CLNN": (1.268e-2, 7.8e-4),
+        "IN-CP-SP": (1.374e-2, 8.1e-4),
+    },
+    "Rope200": {
+        "CM-CD-CLNN": (3.198e-3, 5.69e-4),
+        "MLP-CD-CLNN": (5.984e-3, 5.21e-4),
+        "IN-CP-CLNN": (6.870e-3, 5.11e-4),
+        "IN-CP-SP": (8.938e-3, 5.30e-4),
+    },
 }
 
 ELASTIC = ("BP5-e", "CP3-e", "Gyro-e")  # the Fig. 5 panels
