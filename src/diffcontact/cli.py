@@ -9,6 +9,8 @@ from contextlib import contextmanager
 
 import typer
 
+from diffcontact.eval.published import EFFICIENCY_SIZES
+
 app = typer.Typer(
     help="diffcontact: differentiable contact models for learning rigid-body dynamics.",
     no_args_is_help=True,
@@ -348,6 +350,53 @@ def _split(values: list[str]) -> list[str]:
     return [v.strip() for value in values for v in value.split(",") if v.strip()]
 
 
+ALL_AT_ONCE = 100_000  # (--jobs of a cluster backend: every cell submitted, the cluster queues them)
+SEEDS = typer.Option(["0"], "--seeds", "-s", help="Seeds of each (task, model), e.g. -s 0,1,2.")
+JOBS = typer.Option(
+    None,
+    "--jobs",
+    "-j",
+    min=1,
+    help="Runs at a time, one process each (default: one per available CPU, as memory allows: 1.5 GB each; "
+    "with --backend ray or slurm every run at once, the cluster queues them).",
+)
+BACKEND = typer.Option(
+    "local", "--backend", help="Where the runs go: local (this machine), ray (a Ray cluster) or slurm (submitit)."
+)
+ADDRESS = typer.Option(
+    None, "--address", help="With --backend ray: the cluster to join ('auto': this node's; default: a new one)."
+)
+EPOCHS = typer.Option(None, "--epochs", min=1, help="Epochs of every run (default: each task's preset).")
+PARTITION = typer.Option(None, "--partition", help="With --backend slurm: the Slurm partition.")
+TIME_MIN = typer.Option(240, "--time", help="With --backend slurm: each job's time limit in minutes.")
+RUN_THREADS = typer.Option(
+    None,
+    "--threads",
+    min=1,
+    help="Threads of each run (default: the CPUs available to this process / --jobs, "
+    "so 1 with the default --jobs: runs in parallel processes use the cores better than threads, docs/speed.md).",
+)
+
+
+def _sweep_setup(jobs: int | None, threads: int | None, backend: str) -> tuple[int, int]:
+    """(jobs, threads per run) of a command that runs many cells: the defaults of ``reproduce``."""
+    from diffcontact.threads import available_cpus, default_jobs
+
+    jobs = jobs or (default_jobs() if backend == "local" else ALL_AT_ONCE)
+    per_run = threads or max(1, available_cpus() // jobs)
+    _threads(per_run)  # (this process generates the datasets; each run has its own process)
+    return jobs, per_run
+
+
+def _seed_list(seeds: list[str]) -> list[int]:
+    from diffcontact.errors import ConfigError
+
+    try:
+        return [int(x) for x in _split(seeds)]
+    except ValueError as err:
+        raise ConfigError(f"--seeds {seeds}: not integers") from err
+
+
 @app.command("reproduce")
 def reproduce(
     tasks: list[str] = typer.Option(
@@ -356,66 +405,41 @@ def reproduce(
     models: list[str] = typer.Option(
         [], "--models", "-m", help="Models, repeated or comma-separated (default: the 4 contact models, 3 baselines)."
     ),
-    seeds: list[str] = typer.Option(["0"], "--seeds", "-s", help="Seeds of each (task, model), e.g. -s 0,1,2."),
+    seeds: list[str] = SEEDS,
     out: str = typer.Option("reproduction", "--out", help="Folder of the runs, figures and report.md."),
     quick: bool = typer.Option(False, "--quick", help="Tiny datasets and one epoch: the pipeline in minutes."),
-    jobs: int = typer.Option(
-        None,
-        "--jobs",
-        "-j",
-        min=1,
-        help="Runs at a time, one process each (default: one per available CPU, as memory allows: 1.5 GB each; "
-        "with --backend ray or slurm every run at once, the cluster queues them).",
+    jobs: int = JOBS,
+    data: str = typer.Option(
+        "", "--data", help="Dataset root (default: data, or OUT/data with --quick, --noise or --n-train)."
     ),
-    data: str = typer.Option("", "--data", help="Dataset root (default: data, or OUT/data with --quick or --noise)."),
     noise: float = typer.Option(
         0.0, "--noise", help="Std of the observation noise on the training and validation chunks (0 = none)."
     ),
-    backend: str = typer.Option(
-        "local", "--backend", help="Where the runs go: local (this machine), ray (a Ray cluster) or slurm (submitit)."
-    ),
-    address: str = typer.Option(
-        None, "--address", help="With --backend ray: the cluster to join ('auto': this node's; default: a new one)."
-    ),
-    epochs: int = typer.Option(None, "--epochs", min=1, help="Epochs of every run (default: each task's preset)."),
-    partition: str = typer.Option(None, "--partition", help="With --backend slurm: the Slurm partition."),
-    time_min: int = typer.Option(240, "--time", help="With --backend slurm: each job's time limit in minutes."),
-    threads: int = typer.Option(
-        None,
-        "--threads",
-        min=1,
-        help="Threads of each run (default: the CPUs available to this process / --jobs, "
-        "so 1 with the default --jobs: runs in parallel processes use the cores better than threads, docs/speed.md).",
-    ),
+    n_train: int = typer.Option(None, "--n-train", min=1, help="Training trajectories of every dataset."),
+    backend: str = BACKEND,
+    address: str = ADDRESS,
+    epochs: int = EPOCHS,
+    partition: str = PARTITION,
+    time_min: int = TIME_MIN,
+    threads: int = RUN_THREADS,
 ) -> None:
     """Train (or reuse) and evaluate every task x model x seed, then write OUT/report.md beside the published values.
 
     Resumable: evaluated runs are skipped, an interrupted training continues from its last checkpoint."""
     import sys
 
-    from diffcontact.errors import ConfigError
     from diffcontact.eval.backends import Backend
     from diffcontact.eval.reproduce import reproduce as run_matrix
-    from diffcontact.threads import available_cpus, default_jobs
 
-    jobs = jobs or (default_jobs() if backend == "local" else ALL_AT_ONCE)
-    per_run = threads or max(1, available_cpus() // jobs)
-    _threads(per_run)  # (this process generates the datasets; each run has its own process)
+    jobs, per_run = _sweep_setup(jobs, threads, backend)
     with _user_errors():
         tasks, models = _split(tasks), _split(models)
-        try:
-            seed_list = [int(x) for x in _split(seeds)]
-        except ValueError as err:
-            raise ConfigError(f"--seeds {seeds}: not integers") from err
         run_matrix(
-            tasks, models, seed_list, out, quick=quick, jobs=jobs, threads=per_run, data=data or None, echo=typer.echo,
-            noise=noise, backend=Backend(backend, address=address, partition=partition, time_min=time_min),
-            epochs=epochs,
+            tasks, models, _seed_list(seeds), out, quick=quick, jobs=jobs, threads=per_run, data=data or None,
+            echo=typer.echo, noise=noise, n_train=n_train,
+            backend=Backend(backend, address=address, partition=partition, time_min=time_min), epochs=epochs,
             command=" ".join(["diffcontact", *sys.argv[1:]]),
         )  # fmt: skip
-
-
-ALL_AT_ONCE = 100_000  # (--jobs of a cluster backend: every cell submitted, the cluster queues them)
 
 
 @bench_app.command("near-psd")
@@ -648,3 +672,40 @@ def bench_tosses(
     with _user_errors():
         toss_sweep(source, out, sizes=tuple(sizes), methods=chosen, seed=seed, epochs=epochs, echo=typer.echo)
     typer.echo(f"-> {out}/sweep.md")
+
+
+@bench_app.command("efficiency")
+def bench_efficiency(
+    task: str = typer.Argument("Rope200", help="The task (the published curves are the 200-node rope's)."),
+    sizes: list[int] = typer.Option(
+        list(EFFICIENCY_SIZES), "--size", "-n", help="Training trajectories N (repeat; default: the published ten)."
+    ),
+    models: list[str] = typer.Option(
+        [], "--models", "-m", help="Models, repeated or comma-separated (default: CM-CD-CLNN and the 3 baselines)."
+    ),
+    seeds: list[str] = SEEDS,
+    out: str = typer.Option("runs/efficiency", "--out", help="Folder of the reproductions, one per N, and tables."),
+    quick: bool = typer.Option(False, "--quick", help="Short trajectories and one epoch: the pipeline in minutes."),
+    jobs: int = JOBS,
+    backend: str = BACKEND,
+    address: str = ADDRESS,
+    epochs: int = EPOCHS,
+    partition: str = PARTITION,
+    time_min: int = TIME_MIN,
+    threads: int = RUN_THREADS,
+) -> None:
+    """Sample efficiency: the 5-step error of each model against the training trajectories N, one reproduction per
+    N, beside the published curves; writes efficiency.md, efficiency.json and efficiency.png (resumes)."""
+    import sys
+
+    from diffcontact.eval.backends import Backend
+    from diffcontact.eval.efficiency import MODELS, run_efficiency
+
+    jobs, per_run = _sweep_setup(jobs, threads, backend)
+    with _user_errors():
+        run_efficiency(
+            task, tuple(_split(models)) or MODELS, sizes, out, seeds=_seed_list(seeds), jobs=jobs, threads=per_run,
+            backend=Backend(backend, address=address, partition=partition, time_min=time_min), epochs=epochs,
+            quick=quick, echo=typer.echo, command=" ".join(["diffcontact", *sys.argv[1:]]),
+        )  # fmt: skip
+    typer.echo(f"-> {out}/efficiency.md")

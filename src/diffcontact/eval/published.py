@@ -125,3 +125,13 @@ TRAJECTORY_ERROR = {
 }
 
 ELASTIC = ("BP5-e", "CP3-e", "Gyro-e")  # the Fig. 5 panels
+
+# H.5: sample efficiency on the rope of 200 nodes (ER200k50): the 5-step error against the training trajectories
+EFFICIENCY_SIZES = (25, 50, 100, 200, 400, 800, 1600, 3200, 6400, 12800)
+_CURVES = {
+    "CM-CD-CLNN": (1.915e-3, 1.866e-3, 2.036e-3, 1.922e-3, 1.897e-3, 3.198e-3, 2.268e-3, 1.639e-3, 1.571e-3, 1.202e-3),
+    "MLP-CD-CLNN": (2.956e-2, 1.248e-2, 7.358e-3, 8.662e-3, 7.024e-3, 5.984e-3, 5.944e-3, 5.980e-3, 5.921e-3, 5.935e-3),
+    "IN-CP-CLNN": (3.729e-2, 3.063e-2, 2.100e-2, 2.685e-2, 1.438e-2, 6.870e-3, 6.863e-3, 6.213e-3, 5.903e-3, 5.902e-3),
+    "IN-CP-SP": (5.964e-2, 6.493e-2, 2.817e-2, 3.588e-2, 2.711e-2, 8.938e-3, 9.188e-3, 7.328e-3, 7.718e-3, 7.397e-3),
+}
+SAMPLE_EFFICIENCY = {"Rope200": {model: dict(zip(EFFICIENCY_SIZES, curve)) for model, curve in _CURVES.items()}}

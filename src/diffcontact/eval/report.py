@@ -92,6 +92,8 @@ def write_report(out: str | Path, tasks: list[str], models: list[str], seeds: li
             "(diffcontact.data.noise); the test trajectories, and so every error below, are clean.",
             "",
         ]
+    if settings.get("n_train"):
+        lines += [f"**Training set**: {settings['n_train']} trajectories per task.", ""]
     if settings.get("quick"):
         lines += [
             "**Quick mode**: tiny datasets, one epoch, short rollouts. The numbers check the pipeline, not the method.",

@@ -202,11 +202,17 @@ def expected_seconds(out: Path, cells: list[Cell]) -> dict[str, float]:
     return expected
 
 
-def _settings_file(out: Path, quick: bool, noise: float) -> dict:
-    """OUT/reproduce.json, checked to be of the same mode (quick or full) and noise: their runs must not mix."""
+def _settings_file(out: Path, quick: bool, noise: float, n_train: int | None = None) -> dict:
+    """OUT/reproduce.json, checked to be of the same mode (quick or full), noise and number of training trajectories
+    (None: the default sizes): their runs must not mix."""
     path = out / "reproduce.json"
     if path.is_file():
         saved = json.loads(path.read_text())
+        if saved.get("n_train") != n_train:
+            raise ConfigError(
+                f"{out} holds a reproduction with {saved.get('n_train') or 'the default number of'} training "
+                f"trajectories: give another --out for {n_train or 'the default number'}"
+            )
         if saved.get("quick") != quick:
             mode = "quick" if saved.get("quick") else "full"
             raise ConfigError(
@@ -218,7 +224,7 @@ def _settings_file(out: Path, quick: bool, noise: float) -> dict:
                 f"noise {noise:g}"
             )
         return saved
-    return {"quick": quick, "noise": noise, "sessions": []}
+    return {"quick": quick, "noise": noise, "n_train": n_train, "sessions": []}
 
 
 def reproduce(
@@ -232,6 +238,7 @@ def reproduce(
     threads: int = 1,
     data: str | Path | None = None,
     noise: float = 0.0,
+    n_train: int | None = None,
     backend: Backend | None = None,
     epochs: int | None = None,
     progress_every: float = 60.0,
@@ -242,8 +249,9 @@ def reproduce(
     write OUT/report.md (:func:`diffcontact.eval.report.write_report`).  Returns the report's path.
 
     ``threads``: threads of each run's process.  ``data``: dataset root (default ``data``, or OUT/data with
-    ``quick`` or ``noise``).  ``noise``: the standard deviation of the observation noise on the training and
-    validation chunks (:mod:`diffcontact.data.noise`; the test trajectories stay clean).  ``backend``: where the
+    ``quick``, ``noise`` or ``n_train``).  ``noise``: the standard deviation of the observation noise on the training
+    and validation chunks (:mod:`diffcontact.data.noise`; the test trajectories stay clean).  ``n_train``: training
+    trajectories of every dataset (default: the generator's, or the quick mode's).  ``backend``: where the
     cells run (:mod:`diffcontact.eval.backends`; default this machine), ``jobs`` of them at a time.  ``epochs``: of
     every run trained (default: each task's preset, or one with ``quick``).  ``progress_every``:
     seconds between progress lines while runs are going (one is also printed whenever a run starts or ends).
@@ -265,13 +273,17 @@ def reproduce(
     if epochs is not None and (isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 1):
         raise ConfigError(f"epochs = {epochs!r} is not a whole number >= 1")
     noise = check_noise(noise)
+    if n_train is not None and (isinstance(n_train, bool) or not isinstance(n_train, int) or n_train < 1):
+        raise ConfigError(f"n_train = {n_train!r} is not a whole number >= 1")
     backend = backend or Backend()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    settings = _settings_file(out, quick, noise)
-    data = Path(data) if data else (out / "data" if quick or noise else Path("data"))
+    settings = _settings_file(out, quick, noise, n_train)
+    data = Path(data) if data else (out / "data" if quick or noise or n_train else Path("data"))
     started, began = time.perf_counter(), time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     sizes: dict[str, Any] = {k: QUICK[k] for k in ("n_train", "n_val", "n_test", "frames")} if quick else {}
+    if n_train is not None:
+        sizes["n_train"] = n_train
     for task in tasks:
         generate_dataset(task, data, noise=noise, progress=False, echo=echo, **sizes)
     cells = [replace(c, epochs=epochs) for c in plan(out, tasks, models, seeds)]

@@ -1,0 +1,69 @@
+"""The sample-efficiency sweep (diffcontact.eval.efficiency): one reproduction per training size, a table and a
+figure beside the published curves."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from diffcontact.errors import ConfigError
+from diffcontact.eval import published
+from diffcontact.eval.efficiency import collect, efficiency_figure, efficiency_markdown, run_efficiency
+from diffcontact.eval.reproduce import reproduce
+from diffcontact.files import write_json
+from diffcontact.run_dir import RunDir
+
+
+def _evaluated(out, n, task, model, seed, mean, half):
+    run = RunDir.of_cell(out / f"N{n}", task, model, seed)
+    write_json(run.eval_dir() / "metrics.json", {"trajectory_error": {"steps": 5, "mean": mean, "ci95": half}})
+
+
+def test_the_table_sets_each_measured_cell_beside_the_published_one_and_names_the_missing(tmp_path):
+    _evaluated(tmp_path, 25, "Rope200", "CM-CD-CLNN", 0, 1.5e-4, 2e-5)
+    _evaluated(tmp_path, 25, "Rope200", "CM-CD-CLNN", 1, 2.5e-4, 3e-5)
+    _evaluated(tmp_path, 50, "Rope200", "MLP-CD-CLNN", 0, 9e-3, 1e-3)
+    table = collect(tmp_path, "Rope200", ["CM-CD-CLNN", "MLP-CD-CLNN"], [25, 50], [0, 1])
+    cm = table["CM-CD-CLNN"][25]
+    assert cm is not None and cm["seeds"] == 2 and cm["mean"] == pytest.approx(2e-4)
+    assert cm["ci95"] == pytest.approx(1.96 * np.std([1.5e-4, 2.5e-4], ddof=1) / 2**0.5)
+    assert table["CM-CD-CLNN"][50] is None and table["MLP-CD-CLNN"][25] is None
+    mlp = table["MLP-CD-CLNN"][50]
+    assert mlp is not None and (mlp["mean"], mlp["ci95"], mlp["seeds"]) == (9e-3, 1e-3, 1)  # (one seed: its own)
+    text = efficiency_markdown("Rope200", table)
+    rows = {line.split(" | ")[0].strip("| "): line for line in text.splitlines() if line.startswith("| ")}
+    assert "0.0002 ± 9.8e-05 (0.00192)" in rows["CM-CD-CLNN"]  # (published 1.915e-3 at N = 25)
+    assert "not measured (0.00187)" in rows["CM-CD-CLNN"]
+    assert "not measured (0.0296)" in rows["MLP-CD-CLNN"] and "0.009 ± 0.001 (0.0125)" in rows["MLP-CD-CLNN"]
+    figure = efficiency_figure("Rope200", table, tmp_path / "efficiency.png")
+    assert figure.stat().st_size > 1000
+
+
+def test_bad_sizes_and_a_folder_of_another_training_size_are_refused(tmp_path):
+    for sizes in ([], [0], [25, -1], [2.5], [True]):
+        with pytest.raises(ConfigError, match="sizes"):
+            run_efficiency("BP5-e", ["CM-CD-CLNN"], sizes, tmp_path)
+    write_json(tmp_path / "reproduce.json", {"quick": True, "noise": 0.0, "n_train": 8, "sessions": []})
+    with pytest.raises(ConfigError, match="8 training trajectories: give another --out for 12"):
+        reproduce(["BP5-e"], ["CM-CD-CLNN"], [0], tmp_path, quick=True, n_train=12)
+    with pytest.raises(ConfigError, match="n_train"):
+        reproduce(["BP5-e"], ["CM-CD-CLNN"], [0], tmp_path / "other", quick=True, n_train=0)
+
+
+@pytest.mark.slow  # (two quick cells: about 30 s)
+def test_a_quick_sweep_trains_one_reproduction_per_size_and_resumes(tmp_path):
+    table = run_efficiency("BP5-e", ["CM-CD-CLNN"], [12, 6], tmp_path, quick=True, echo=lambda _: None)
+    assert sorted(table["CM-CD-CLNN"]) == [6, 12] and all(table["CM-CD-CLNN"].values())
+    for n in (6, 12):
+        meta = json.loads((tmp_path / f"N{n}" / "data" / "BP5-e" / "meta.json").read_text())
+        assert meta["request"]["sizes"]["train"] == n  # (the validation and test splits as quick mode sets them, for every N)
+        assert json.loads((tmp_path / f"N{n}" / "reproduce.json").read_text())["n_train"] == n
+    record = json.loads((tmp_path / "efficiency.json").read_text())
+    assert record["sizes"] == [6, 12] and record["table"]["CM-CD-CLNN"]["6"]["seeds"] == 1
+    assert (tmp_path / "efficiency.png").is_file() and "N = 6 | N = 12" in (tmp_path / "efficiency.md").read_text()
+    learned = RunDir.of_cell(tmp_path / "N6", "BP5-e", "CM-CD-CLNN", 0).learned.stat().st_mtime
+    run_efficiency("BP5-e", ["CM-CD-CLNN"], [6, 12], tmp_path, quick=True, echo=lambda _: None)
+    assert RunDir.of_cell(tmp_path / "N6", "BP5-e", "CM-CD-CLNN", 0).learned.stat().st_mtime == learned
+    assert published.SAMPLE_EFFICIENCY["Rope200"]["CM-CD-CLNN"][12800] == 1.202e-3
