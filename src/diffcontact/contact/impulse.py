@@ -82,8 +82,9 @@ class ContactModel:
         Bp = xs.shape[0]
         Jc = contacts.J.to(x)
         MhJt, A = effective_inverse_inertia(inverse_factor_blocks(params.inertia), constraints, xs, Jc)
-        A_qp = A + self.reg * torch.eye(A.shape[-1], dtype=A.dtype) if self.reg > 0 else A
-        mu = torch.where(contacts.frictionless, torch.zeros((), dtype=x.dtype), params.mu.to(x)[contacts.slot])
+        A_qp = A + self.reg * torch.eye(A.shape[-1], dtype=A.dtype, device=A.device) if self.reg > 0 else A
+        mu = params.mu.to(x)[contacts.slot]
+        mu = torch.where(contacts.frictionless.to(x.device), torch.zeros_like(mu), mu)
         e = params.e.to(x)[contacts.slot]
         vC = (Jc @ vs.reshape(Bp, -1, 1))[..., 0]
         f_c = solve(A_qp, vC, mu, None, contacts.active)
@@ -106,7 +107,7 @@ class ContactModel:
         that tilts it.  "effective-mass": A A⁺ v_d (A: (B', C, C) the contact-space inverse inertia), the contact
         velocity of the motion of least kinetic energy closest to v_d: equal depths lift a face straight up."""
         Bp, k_c = contacts.active.shape
-        vd = torch.zeros(Bp, k_c, contacts.dc, dtype=xs.dtype)
+        vd = torch.zeros(Bp, k_c, contacts.dc, dtype=xs.dtype, device=xs.device)
         vd[..., 0] = -self.compensation * contacts.gap.to(xs) / dt
         vd = vd.reshape(Bp, -1, 1)
         if self.lift == "effective-mass":
@@ -124,7 +125,7 @@ class ContactModel:
         regular, L = _regular(Jc @ Jc.mT, (Jc != 0).any(-1))
         if not constraints.count and bool(regular.all()):
             return vd[..., 0]  # (J_C J_C⁺ = I on the rows in use where J_C has full row rank)
-        y = torch.zeros(Bp, Jc.shape[-1], 1, dtype=xs.dtype)  # J_C⁺ v_d, (B', D, 1)
+        y = torch.zeros(Bp, Jc.shape[-1], 1, dtype=xs.dtype, device=xs.device)  # J_C⁺ v_d, (B', D, 1)
         y[regular] = Jc[regular].mT @ torch.cholesky_solve(vd[regular], L[regular])
         if not bool(regular.all()):
             with one_thread():
@@ -141,7 +142,7 @@ class ContactModel:
         """Apply the contact model to a batch of ``system`` at x, v (B, P, d) over a step of dt (s): returns
         (v⁺ (B, P, d), in_contact (B,) bool)."""
         contacts = system.detector.detect(x)
-        flag = torch.zeros(x.shape[0], dtype=torch.bool)
+        flag = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
         if contacts is None:
             return v, flag
         ph = self.phases(system.constraints, params, x, v, contacts, dt)
@@ -162,7 +163,7 @@ def _regular(G: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.T
     L, info = torch.linalg.cholesky_ex(G)
     regular = info == 0
     if bool(regular.any()):
-        eye = torch.eye(G.shape[-1], dtype=G.dtype).expand(int(regular.sum()), -1, -1)
+        eye = torch.eye(G.shape[-1], dtype=G.dtype, device=G.device).expand(int(regular.sum()), -1, -1)
         inverse = torch.linalg.solve_triangular(L[regular], eye, upper=False)
         bound = 1.0 / inverse.square().sum((-2, -1))
         floor = torch.finfo(G.dtype).eps ** 0.5 * torch.linalg.matrix_norm(G[regular])
