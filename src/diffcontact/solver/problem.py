@@ -320,6 +320,50 @@ def _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result):
     return f.index_copy(0, r, again.to(f.dtype))
 
 
+@dataclass
+class _Batch:
+    """A batch as its attempts see it: the problems (the float64 arrays of ``_as_arrays``, A symmetrised), their
+    scaling (``scaling.scale_batch``: f = γ·T⊙z; ``gamma`` and ``lower_scale`` change where an attempt rescales) and
+    the kernel's passes and options."""
+
+    A: np.ndarray  # (B, n, n) ½(A + Aᵀ)
+    q: np.ndarray
+    mu: np.ndarray
+    lower: np.ndarray
+    active: np.ndarray
+    d: int
+    c: np.ndarray  # the scaled problems' data (``scaling.scale_batch``)
+    l_hat: np.ndarray
+    T: np.ndarray
+    S: np.ndarray
+    gamma: np.ndarray
+    sigma: np.ndarray
+    lower_scale: np.ndarray
+    on_q: np.ndarray
+    on_l: np.ndarray
+    zero_mu: np.ndarray
+    passes: list[dict]
+    options: dict
+    acceptable_tol: float
+    free: np.ndarray | None  # (B, K) contacts with μ ≥ ``scaling.MU_FREE`` scaled free (their cone comes after)
+    mu_check: np.ndarray  # μ of the natural-residual checks (contacts scaled free: 1e300)
+    check: bool  # some μ above ``optimality.MU_CHECKED``: usable answers are also checked in unscaled units
+
+    def result(self) -> kernel.IPMResult:
+        """An empty kernel result for the batch."""
+        return kernel.IPMResult(self.A, self.T, self.on_q, self.on_l, self.d)
+
+    def solve(self, elements: np.ndarray, start_margin: float, out: kernel.IPMResult, c=None, l_hat=None) -> None:
+        """The kernel's passes on ``elements`` into ``out`` (c, l_hat: of another γ; default the batch's)."""
+        c, l_hat = (self.c, self.l_hat) if c is None else (c, l_hat)
+        _solve_passes(self.A, self.T, c, l_hat, self.on_q, self.on_l, self.d, elements, self.passes, self.options,
+                      start_margin, out)  # fmt: skip
+
+    def natural(self, gamma: np.ndarray, z: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The natural residuals (``_natural``) of the answers f = γ·T⊙z of ``rows``."""
+        return _natural(self.A, self.q, self.mu_check, self.lower, self.active, self.d, gamma, self.T, z, rows)
+
+
 def _solve_scaled(
     A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays=None, mu_max=None, sliding=None, symmetric=None
 ):
@@ -342,117 +386,144 @@ def _solve_scaled(
       (a flat direction: polishing from pass 1's start got nearer than pass 2 does).  Without pass 2 where
       ``tol`` ≥ ``IPM_TOL``: pass 1 runs to ``tol``.
 
-    Attempts: (1) every element from the default start (``START_MARGIN``); (2) the elements not converged, again
-    from CVXOPT's start, farther inside the cones (``ROBUST_MARGIN``; two rope and BD5 problems of the simulation
-    benchmark need it); (3) the elements still at MAX_ITER with a finite iterate, from that start with γ set to
-    the size of the stalled iterate (a badly estimated solution size, nearly singular A, can stall the method).
-    Attempt 3 also takes the usable answers of elements with a friction coefficient above
-    ``optimality.MU_CHECKED`` whose natural residual in unscaled units (``optimality.py``; contacts scaled free
-    checked as free) exceeds ``acceptable_tol``, with γ set to γ·min(1, ‖z‖∞) (a guard: none at μ 10 … 1e3 since γ
-    is estimated without the factor μ); its answer replaces theirs where usable with a lower natural residual, and
-    those still above ``acceptable_tol`` become MAX_ITER (a failure, never a wrong answer); so do the answers of
-    stalled elements (every μ) above it.  Attempts 2 and 3 otherwise replace an element's result only where they end
-    with a better (lower) status.  Failed elements (``status.is_failure``) get z = 0.
+    The stages, each on the elements the ones before left unsolved: ``_default_start``, ``_robust_start``,
+    ``_rescaled_start`` and ``_solve_capped`` (each says what it does and why); failed elements
+    (``status.is_failure``) get z = 0.
     """
+    batch = _scaled_batch(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays, mu_max, sliding, symmetric)
+    result = _default_start(batch)
+    if np.count_nonzero(result.status) or batch.check:  # (all CONVERGED and nothing to check: the common case)
+        _robust_start(batch, result)
+        _rescaled_start(batch, result)
+    outside = None
+    if batch.free is not None and sliding is None:  # (contacts scaled free: their answer may leave the cone)
+        outside = scaling.outside_cones(result.z, batch.mu, batch.free, d) & (result.status <= _INACCURATE)[:, None]
+    capped = None  # ((B, K) bool: contacts of answers solved with μ capped)
+    if batch.check:
+        capped = np.zeros(batch.mu.shape, dtype=bool)
+        _solve_capped(batch.A, batch.q, batch.mu, batch.lower, batch.active, d, batch.passes, batch.options,
+                      acceptable_tol, result, batch.T, batch.S, batch.gamma, batch.sigma, batch.lower_scale,
+                      capped)  # fmt: skip
+    return _answer(A, q, mu, lower, batch, result, capped), result, outside
+
+
+def _scaled_batch(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays, mu_max, sliding, symmetric):
+    """The ``_Batch`` of ``_solve_scaled``'s arguments: the arrays scaled once, the passes (``IPM_TOL`` first where
+    ``tol`` is below it) and the checks that large friction coefficients need."""
     A64, q64, mu64, lower64, active64 = _as_arrays(A, q, mu, lower, active) if arrays is None else arrays
     A64, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = scaling.scale_batch(
         A64, q64, mu64, lower64, active64, contact_dims(d), sliding, symmetric
     )
-    free = None  # ((B, K) bool: contacts with μ ≥ MU_FREE scaled free, checked as such: their cone comes after)
-    mu_check = mu64
+    free, mu_check = None, mu64
     if d == 1:  # (μ is unused)
         mu_max = 0.0
     elif mu_max is None:
         mu_max = mu64.max() if mu64.size else 0.0
-    if mu_max >= scaling.MU_FREE:
+    if mu_max >= scaling.MU_FREE:  # (contacts with μ ≥ MU_FREE scaled free, checked as such: their cone comes after)
         free = active64 & (mu64 >= scaling.MU_FREE) & (True if sliding is None else ~sliding)
         mu_check = np.where(free, 1e300, mu64)
     passes = [dict(ipm_tol=tol, final_tol=tol)]
     if tol < IPM_TOL:
         passes.insert(0, dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL)))
     options = dict(acceptable_tol=acceptable_tol, max_iter=max_iter, refine_tol=IPM_TOL, polish_steps=POLISH_STEPS)
-    result = kernel.IPMResult(A64, T, on_q, on_l, d)
-    # (the answers also checked in unscaled units: optimality.py)
-    check = mu_max > optimality.MU_CHECKED
-    elements, start_margin, c_try, l_try, gamma_try = np.arange(len(gamma)), START_MARGIN, c, l_hat, gamma
-    stalled = natural = wrong = None  # (attempt 3's, set as it starts)
-    for attempt in range(3):
-        if attempt == 1:
-            if not np.count_nonzero(result.status) and not check:  # (all CONVERGED, the common case)
-                break
-            elements, start_margin = np.flatnonzero(result.status != _CONVERGED), ROBUST_MARGIN
-        elif attempt == 2:
-            size = np.abs(result.z).max(-1)
-            stalled = (result.status == _MAX_ITER) & np.isfinite(size)
-            high_mu = (mu64 > optimality.MU_CHECKED).any(-1) if check else np.zeros(len(gamma), dtype=bool)
-            checked = np.flatnonzero((result.status <= _INACCURATE) & high_mu)
-            natural = np.zeros(len(gamma))
-            natural[checked] = _natural(A64, q64, mu_check, lower64, active64, d, gamma, T, result.z, checked)
-            wrong = natural > acceptable_tol  # (the answer is inaccurate in the problem's own units)
-            elements = np.flatnonzero(stalled | wrong)
-            gamma_try = gamma.copy()
-            gamma_try[elements] *= np.where(
-                wrong, np.where(size > 0, np.minimum(size, 1.0), 1e-6), np.maximum(size, 1e-6)
-            )[elements]
-            ratio = (gamma / gamma_try)[:, None]  # c, l̂ and ∂l̂/∂lower all scale with 1/γ
-            c_try, l_try = c * ratio, l_hat * ratio
-        if not len(elements):
-            continue
-        out = result if attempt == 0 else kernel.IPMResult(A64, T, on_q, on_l, d)
-        _solve_passes(A64, T, c_try, l_try, on_q, on_l, d, elements, passes, options, start_margin, out)
-        if attempt > 0:  # keep the better result
-            better = out.status[elements] < result.status[elements]
-            if attempt == 2:  # (a wrong usable answer: a usable one with a lower natural residual)
-                if natural is None or wrong is None:  # (unreachable)
-                    raise AssertionError("attempt 3 has no natural residuals")
-                better &= ~wrong[elements]
-                again = elements[wrong[elements] & (out.status[elements] <= _INACCURATE)]
-                now = _natural(A64, q64, mu_check, lower64, active64, d, gamma_try, T, out.z, again)
-                better[np.searchsorted(elements, again[now < natural[again]])] = True
-                natural[again] = np.minimum(now, natural[again])
-            better = elements[better]
-            for name in kernel.IPMResult.OUTPUTS:
-                getattr(result, name)[better] = getattr(out, name)[better]
-            if attempt == 2:
-                if natural is None or stalled is None:  # (unreachable)
-                    raise AssertionError("attempt 3 has no natural residuals")
-                lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
-                gamma[better] = gamma_try[better]
-                # (answers of stalled elements, every μ: their γ came from an iterate that may have run away along
-                # an unbounded ray, A = 0 with q outside the dual cone; the scaled c then falls below the kernel's
-                # tolerance, absolute where ‖z‖∞ < 1, and noise near z = 0 passes it)
-                fresh = better[stalled[better]]
-                natural[fresh] = _natural(A64, q64, mu_check, lower64, active64, d, gamma, T, result.z, fresh)
-                result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
-    outside = None
-    if free is not None and sliding is None:
-        outside = scaling.outside_cones(result.z, mu64, free, d) & (result.status <= _INACCURATE)[:, None]
-    capped = None  # ((B, K) bool: contacts of answers solved with μ capped)
-    if check:
-        capped = np.zeros(mu64.shape, dtype=bool)
-        _solve_capped(A64, q64, mu64, lower64, active64, d, passes, options, acceptable_tol, result, T, S, gamma,
-                      sigma, lower_scale, capped)  # fmt: skip
+    check = bool(mu_max > optimality.MU_CHECKED)
+    return _Batch(A64, q64, mu64, lower64, active64, d, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l,
+                  zero_mu, passes, options, acceptable_tol, free, mu_check, check)  # fmt: skip
+
+
+def _default_start(batch: _Batch) -> kernel.IPMResult:
+    """Stage 1: every element from the default start (``START_MARGIN``, measured fastest)."""
+    result = batch.result()
+    batch.solve(np.arange(len(batch.gamma)), START_MARGIN, result)
+    return result
+
+
+def _keep_better(result: kernel.IPMResult, out: kernel.IPMResult, rows: np.ndarray) -> None:
+    for name in kernel.IPMResult.OUTPUTS:
+        getattr(result, name)[rows] = getattr(out, name)[rows]
+
+
+def _robust_start(batch: _Batch, result: kernel.IPMResult) -> None:
+    """Stage 2: the elements not converged, again from CVXOPT's start, farther inside the cones (``ROBUST_MARGIN``;
+    two rope and BD5 problems of the simulation benchmark need it); an answer replaces the element's where its
+    status is better (lower)."""
+    elements = np.flatnonzero(result.status != _CONVERGED)
+    if not len(elements):
+        return
+    out = batch.result()
+    batch.solve(elements, ROBUST_MARGIN, out)
+    _keep_better(result, out, elements[out.status[elements] < result.status[elements]])
+
+
+def _rescaled_start(batch: _Batch, result: kernel.IPMResult) -> None:
+    """Stage 3, from the robust start with another γ: the elements still at MAX_ITER with a finite iterate, with γ
+    set to the size of the stalled iterate (a badly estimated solution size, nearly singular A, can stall the
+    method); and the usable answers of elements with a friction coefficient above ``optimality.MU_CHECKED`` whose
+    natural residual in unscaled units (``optimality.py``; contacts scaled free checked as free) exceeds
+    ``acceptable_tol``, with γ set to γ·min(1, ‖z‖∞) (a guard: none at μ 10 … 1e3 since γ is estimated without the
+    factor μ).  Its answer replaces theirs where usable with a lower natural residual, and those still above
+    ``acceptable_tol`` become MAX_ITER (a failure, never a wrong answer); so do the answers of stalled elements
+    (every μ) above it.  Otherwise an answer replaces the element's only where its status is better."""
+    acceptable_tol, gamma = batch.acceptable_tol, batch.gamma
+    size = np.abs(result.z).max(-1)
+    stalled = (result.status == _MAX_ITER) & np.isfinite(size)
+    high_mu = (batch.mu > optimality.MU_CHECKED).any(-1) if batch.check else np.zeros(len(gamma), dtype=bool)
+    checked = np.flatnonzero((result.status <= _INACCURATE) & high_mu)
+    natural = np.zeros(len(gamma))
+    natural[checked] = batch.natural(gamma, result.z, checked)
+    wrong = natural > acceptable_tol  # (the answer is inaccurate in the problem's own units)
+    elements = np.flatnonzero(stalled | wrong)
+    if not len(elements):
+        return
+    gamma_try = gamma.copy()
+    gamma_try[elements] *= np.where(wrong, np.where(size > 0, np.minimum(size, 1.0), 1e-6), np.maximum(size, 1e-6))[
+        elements
+    ]
+    ratio = (gamma / gamma_try)[:, None]  # c, l̂ and ∂l̂/∂lower all scale with 1/γ
+    out = batch.result()
+    batch.solve(elements, ROBUST_MARGIN, out, batch.c * ratio, batch.l_hat * ratio)
+    better = (out.status[elements] < result.status[elements]) & ~wrong[elements]
+    again = elements[wrong[elements] & (out.status[elements] <= _INACCURATE)]
+    now = batch.natural(gamma_try, out.z, again)
+    better[np.searchsorted(elements, again[now < natural[again]])] = True
+    natural[again] = np.minimum(now, natural[again])
+    better = elements[better]
+    _keep_better(result, out, better)
+    batch.lower_scale[better] *= gamma[better, None] / gamma_try[better, None]
+    gamma[better] = gamma_try[better]
+    # (answers of stalled elements, every μ: their γ came from an iterate that may have run away along an unbounded
+    # ray, A = 0 with q outside the dual cone; the scaled c then falls below the kernel's tolerance, absolute where
+    # ‖z‖∞ < 1, and noise near z = 0 passes it)
+    fresh = better[stalled[better]]
+    natural[fresh] = batch.natural(gamma, result.z, fresh)
+    result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
+
+
+def _answer(A, q, mu, lower, batch: _Batch, result: kernel.IPMResult, capped) -> torch.Tensor:
+    """f (B, n) float64 of the solved batch: failed elements zero, the μ = 0⁺ sliding limit of frictionless
+    contacts, and differentiable (``ImplicitConeQP``) where an input requires a gradient."""
+    d = batch.d
     z = result.z
     if np.count_nonzero(result.status):
         failed = is_failure(result.status)
         if np.count_nonzero(failed):
             z = np.where(failed[:, None], 0.0, z)
     slide = None
-    if d > 1 and np.count_nonzero(zero_mu):
-        z, speed = _frictionless_slide_limit(z, A64, q64, T, gamma, zero_mu, d)
+    if d > 1 and np.count_nonzero(batch.zero_mu):
+        z, speed = _frictionless_slide_limit(z, batch.A, batch.q, batch.T, batch.gamma, batch.zero_mu, d)
         # At μ = 0⁺ a sliding contact's cone multiplier is its sliding speed ‖g_t‖ and adds μ‖g_t‖ to the normal
         # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
-        slide = speed * sigma / gamma[:, None] * zero_mu
+        slide = speed * batch.sigma / batch.gamma[:, None] * batch.zero_mu
     if not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (A, q, mu, lower))):
-        return torch.from_numpy(scaling.unscale(gamma, T, z)), result, outside
+        return torch.from_numpy(scaling.unscale(batch.gamma, batch.T, z))
     if slide is None:
-        slide = np.zeros(sigma.shape)
-    sol = ScaledSolution(A64, q64, T, S, gamma, lower_scale, slide, z, result)
+        slide = np.zeros(batch.sigma.shape)
+    sol = ScaledSolution(batch.A, batch.q, batch.T, batch.S, batch.gamma, batch.lower_scale, slide, z, result)
     if not A.dtype.is_floating_point:
         A = A.to(torch.float64)
     if capped is not None and capped.any():  # (∂f/∂μ of the capped problem is not ours: 0 beyond the cap, as if stuck)
         mu = torch.where(torch.from_numpy(capped), mu.detach(), mu)
-    return ImplicitConeQP.apply(A, q, mu, lower, sol), result, outside
+    return ImplicitConeQP.apply(A, q, mu, lower, sol)
 
 
 def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, result, T, S, gamma, sigma,
