@@ -58,7 +58,7 @@ def test_a_quick_sweep_trains_one_reproduction_per_size_and_resumes(tmp_path):
     assert sorted(table["CM-CD-CLNN"]) == [6, 12] and all(table["CM-CD-CLNN"].values())
     for n in (6, 12):
         meta = json.loads((tmp_path / f"N{n}" / "data" / "BP5-e" / "meta.json").read_text())
-        assert meta["request"]["sizes"]["train"] == n  # (the validation and test splits as quick mode sets them, for every N)
+        assert meta["request"]["sizes"]["train"] == n  # (validation and test: quick mode's, for every N)
         assert json.loads((tmp_path / f"N{n}" / "reproduce.json").read_text())["n_train"] == n
     record = json.loads((tmp_path / "efficiency.json").read_text())
     assert record["sizes"] == [6, 12] and record["table"]["CM-CD-CLNN"]["6"]["seeds"] == 1
@@ -67,3 +67,22 @@ def test_a_quick_sweep_trains_one_reproduction_per_size_and_resumes(tmp_path):
     run_efficiency("BP5-e", ["CM-CD-CLNN"], [6, 12], tmp_path, quick=True, echo=lambda _: None)
     assert RunDir.of_cell(tmp_path / "N6", "BP5-e", "CM-CD-CLNN", 0).learned.stat().st_mtime == learned
     assert published.SAMPLE_EFFICIENCY["Rope200"]["CM-CD-CLNN"][12800] == 1.202e-3
+
+
+@pytest.mark.slow  # (a subprocess: the import of torch)
+def test_python_dash_m_knows_every_command_the_console_script_knows():
+    # `python -m diffcontact.cli` runs the module as __main__, which once started the app before the commands
+    # defined below that point were registered ("No such command 'efficiency'")
+    import subprocess
+    import sys
+
+    from typer.main import get_command
+
+    from diffcontact.cli import app
+
+    bench = set(get_command(app).commands["bench"].commands)  # type: ignore[attr-defined]
+    done = subprocess.run(
+        [sys.executable, "-m", "diffcontact.cli", "bench", "--help"], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert bench >= {"efficiency", "tosses", "train"} and all(name in done.stdout for name in bench)

@@ -642,10 +642,6 @@ def main() -> None:  # pragma: no cover - console entry point
     app()
 
 
-if __name__ == "__main__":  # pragma: no cover
-    app()
-
-
 @bench_app.command("tosses")
 def bench_tosses(
     source: str = typer.Argument(..., help="The tosses: a folder of ContactNets K.pt files, an .npz, or 'sample'."),
@@ -709,3 +705,7 @@ def bench_efficiency(
             quick=quick, echo=typer.echo, command=" ".join(["diffcontact", *sys.argv[1:]]),
         )  # fmt: skip
     typer.echo(f"-> {out}/efficiency.md")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()
