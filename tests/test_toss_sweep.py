@@ -50,3 +50,43 @@ def test_the_sweep_runs_its_cells_resumes_and_tabulates(tmp_path):
     assert paired["nominal"]["lo"] <= paired["nominal"]["mean"] <= paired["nominal"]["hi"] < 0
     text = sweep_markdown(record["table"], {"nominal": {"4": paired["nominal"]}})
     assert "CM-CD-CLNN minus each method" in text and f"| nominal | {paired['nominal']['mean']:+.2f} [" in text
+
+
+@pytest.mark.slow
+def test_trained_cells_go_to_the_backend_and_a_failed_one_is_named_after_the_others_are_tabulated(
+    tmp_path, monkeypatch
+):
+    import shutil
+
+    import diffcontact.eval.backends as backends
+    from diffcontact.errors import DiffContactError
+    from diffcontact.eval.toss_sweep import toss_sweep
+
+    out, asked = tmp_path / "sweep", []
+
+    def runner(backend, folder, threads):  # (a backend that "trains" by copying the nominal cell's scores)
+        assert backend.name == "local" and folder == out and threads == 3
+
+        def run(cell, data, quick):
+            asked.append((cell.model, cell.todo, cell.pictures, cell.epochs, data.name, quick))
+            if cell.model == "IN-CP-CLNN":
+                return {"status": "failed", "error": "exited with 1"}
+            shutil.copytree(out / "runs" / "nominal" / "eval", cell.run / "eval")
+            return {"status": "done"}
+
+        return run
+
+    monkeypatch.setattr(backends, "cell_runner", runner)
+    methods = ("nominal", "CM-CD-CLNN", "IN-CP-CLNN")
+    with pytest.raises(DiffContactError, match=r"1 cells of the sweep failed: N4 IN-CP-CLNN: DiffContactError: exited"):
+        toss_sweep("sample", out, sizes=(4,), methods=methods, epochs=2, jobs=1, threads=3, echo=lambda _: None)
+    assert sorted(asked) == [("CM-CD-CLNN", "train", False, 2, "CubeToss", False),
+                             ("IN-CP-CLNN", "train", False, 2, "CubeToss", False)]  # fmt: skip
+    record = json.loads((out / "sweep.json").read_text())
+    assert set(record["table"]["CM-CD-CLNN"]) == {"4"} and record["table"]["IN-CP-CLNN"] == {}
+    assert list(record["failed"]) == ["N4 IN-CP-CLNN"] and record["paired"]["nominal"]["4"]["mean"] == 0.0
+    assert "| IN-CP-CLNN | – |" in (out / "sweep.md").read_text()
+    asked.clear()  # (again: the finished cells are read, only the failed one runs)
+    with pytest.raises(DiffContactError):
+        toss_sweep("sample", out, sizes=(4,), methods=methods, epochs=2, jobs=1, threads=3, echo=lambda _: None)
+    assert [a[0] for a in asked] == ["IN-CP-CLNN"]

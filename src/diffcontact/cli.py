@@ -653,20 +653,29 @@ def bench_tosses(
         [], "--method", "-m", help="Methods (repeat or comma-separated; default: all seven of the sweep)."
     ),
     seed: int = typer.Option(0, "--seed", help="Seed of the split by toss and of the training subsets."),
-    epochs: int = typer.Option(None, "--epochs", help="Training epochs (default: the task's)."),
-    threads: int = THREADS,
+    epochs: int = EPOCHS,
+    jobs: int = JOBS,
+    backend: str = BACKEND,
+    address: str = ADDRESS,
+    partition: str = PARTITION,
+    time_min: int = TIME_MIN,
+    threads: int = RUN_THREADS,
 ) -> None:
     """The training-size sweep on measured tosses: every method at N training tosses, scored on the same test
     tosses; writes sweep.md, sweep.json and sweep.png (resumes where it stopped)."""
-    _threads(threads)
+    from diffcontact.eval.backends import Backend
     from diffcontact.eval.toss_sweep import METHODS, toss_sweep
 
     chosen = tuple(_split(methods)) or METHODS
     unknown = sorted(set(chosen) - set(METHODS))
     if unknown:
         raise typer.BadParameter(f"unknown methods {unknown}; known: {list(METHODS)}")
+    jobs, per_run = _sweep_setup(jobs, threads, backend)
     with _user_errors():
-        toss_sweep(source, out, sizes=tuple(sizes), methods=chosen, seed=seed, epochs=epochs, echo=typer.echo)
+        toss_sweep(
+            source, out, sizes=tuple(sizes), methods=chosen, seed=seed, epochs=epochs, jobs=jobs, threads=per_run,
+            backend=Backend(backend, address=address, partition=partition, time_min=time_min), echo=typer.echo,
+        )  # fmt: skip
     typer.echo(f"-> {out}/sweep.md")
 
 

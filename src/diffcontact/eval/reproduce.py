@@ -52,6 +52,7 @@ class Cell:
     todo: str
     note: str = ""
     epochs: int | None = None  # (None: the preset's, or one with --quick)
+    pictures: bool = True  # (the evaluation's GIF and figures)
 
     @property
     def label(self) -> str:
@@ -87,6 +88,7 @@ def run_cell(cell: Cell, data: Path, quick: bool, threads: int = 1) -> dict:
     cmd += [str(data), *(["--train"] if cell.todo == "train" else [])]
     epochs = cell.epochs or (QUICK["epochs"] if quick else None)
     cmd += ["--epochs", str(epochs)] if epochs else []
+    cmd += [] if cell.pictures else ["--no-pictures"]
     if quick:
         cmd += ["--batch-size", str(QUICK["batch_size"]), "--frames", str(QUICK["eval_frames"])]
     cell.run.mkdir(parents=True, exist_ok=True)

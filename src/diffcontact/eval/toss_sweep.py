@@ -3,19 +3,22 @@ training tosses of one seeded split and scored on the same test tosses with the 
 
 Methods: the contact models and the paper's baselines (``diffcontact train``), the task's nominal values in the
 exact model (no training), and the MuJoCo and Bullet cubes fitted by CMA-ES (``diffcontact peers fit``, optional
-extra ``peers``). The sweep resumes: a cell whose metrics.json exists is read, not run again.
+extra ``peers``). The sweep resumes: a cell whose metrics.json exists is read, not run again, and a trained cell
+resumes from its last checkpoint. Trained cells go to the backend of ``reproduce`` (this machine, Ray or Slurm).
 """
 
 from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from diffcontact.data.store import load_meta
 from diffcontact.errors import DiffContactError
+from diffcontact.eval.backends import Backend
 from diffcontact.files import versions, write_json, write_text
 from diffcontact.run_dir import METRICS as METRICS_FILE
 from diffcontact.run_dir import RunDir
@@ -57,31 +60,27 @@ def _folders(out: Path, method: str, n: int | None) -> tuple[Path, Path]:
     return run, RunDir(run).eval_dir()
 
 
-def _cell(source, out: Path, method: str, n: int | None, folder: Path, seed: int, split, epochs, task, echo) -> dict:
-    """The test metrics of one method at one training size, from its metrics.json or by running it."""
-    from diffcontact.eval.evaluate import evaluate_nominal, evaluate_run
+def _cell(
+    source, out: Path, method: str, n: int | None, folder: Path, seed: int, split, epochs, task, run_cell
+) -> None:
+    """Run one method at one training size: its metrics.json (and predictions.npz) written, or an error raised.
+    A trained method is a cell of ``reproduce`` (``run_cell``: on this machine, Ray or Slurm, in its own process,
+    resuming from its last checkpoint); the nominal values and the peers are scored here."""
+    from diffcontact.eval.evaluate import evaluate_nominal
+    from diffcontact.eval.reproduce import Cell
 
-    label = f"N{n}" if n else "all"
-    run, scored = _folders(out, method, n)
-    metrics = scored / METRICS_FILE
-    if metrics.is_file():
-        return json.loads(metrics.read_text())
-    started = time.perf_counter()
+    run, _ = _folders(out, method, n)
     if method == "nominal":
-        result = evaluate_nominal(task, folder, run / "eval", pictures=False)
+        evaluate_nominal(task, folder, run / "eval", pictures=False)
     elif method in PEERS:
         from diffcontact.peers.fit import run_fit
 
-        result = run_fit(method, source, run, seed=seed, split=split, train_tosses=n, echo=echo)
+        run_fit(method, source, run, seed=seed, split=split, train_tosses=n)
     else:
-        from diffcontact.train.run import train_run
-
-        resume = RunDir(run).last_checkpoint.is_file()
-        train_run(task, method, data_root=folder, out=run, epochs=epochs, seed=0, resume=resume, progress=False)
-        result = evaluate_run(run, data_root=folder, pictures=False)
-    seconds = time.perf_counter() - started
-    echo(f"{label} {method}: position error {_fitted(result)['position_error_pct']:.2f} % ({seconds:.0f} s)")
-    return result
+        todo = "evaluate" if RunDir(run).learned.is_file() else "train"
+        record = run_cell(Cell(task, method, 0, run, todo, epochs=epochs, pictures=False), folder, False)
+        if record["status"] != "done":
+            raise DiffContactError(record.get("error", "failed"))
 
 
 def _fitted(result: dict) -> dict:
@@ -99,26 +98,70 @@ def toss_sweep(
     split: tuple[float, float, float] = (0.8, 0.1, 0.1),
     epochs: int | None = None,
     task: str = "CubeToss",
+    jobs: int = 1,
+    threads: int = 1,
+    backend: Backend | None = None,
     echo=print,
 ) -> dict:
     """Run (or resume) the sweep into ``out`` and write ``out``/sweep.json, sweep.md (the tables) and sweep.png
     (position error against N, one line per method). ``sizes``: numbers of training tosses (0: all of the split's);
-    ``epochs``: training epochs (default: the task's). Returns the table {method: {N: metrics}}."""
+    ``epochs``: training epochs (default: the task's); ``jobs`` cells at a time, the trained ones on ``backend``
+    (default: this machine) with ``threads`` threads each. A cell that fails leaves the others running; the tables
+    are written with it marked, then DiffContactError names it. Returns the table {method: {N: metrics}}."""
+    from diffcontact.eval.backends import cell_runner
+
     out = Path(out)
+    folders = {n: _dataset(source, out, n or None, seed, split, task) for n in sizes}
+    todo: dict[Path, tuple[int, str]] = {}  # (by the folder it writes: the nominal cell serves every N)
+    for n in sizes:
+        for method in methods:
+            scored = _folders(out, method, n or None)[1]
+            if not (scored / METRICS_FILE).is_file():
+                todo.setdefault(scored, (n, method))
+    run_cell = cell_runner(backend or Backend(), out, threads)
+    failed: dict[str, str] = {}
+
+    def job(n: int, method: str) -> None:
+        label = f"N{n or 'all'} {method}"
+        started = time.perf_counter()
+        try:
+            _cell(source, out, method, n or None, folders[n], seed, split, epochs, task, run_cell)
+        except Exception as err:  # (a failed cell, or a cluster's job lost: the other cells go on)
+            failed[label] = f"{type(err).__name__}: {err}"
+            echo(f"{label}: failed ({failed[label]})")
+            return
+        result = _fitted(json.loads((_folders(out, method, n or None)[1] / METRICS_FILE).read_text()))
+        seconds = time.perf_counter() - started
+        echo(f"{label}: position error {_number(result['position_error_pct'])} % ({seconds:.0f} s)")
+
+    if todo:
+        echo(f"{len(todo)} cells to run, {min(jobs, len(todo))} at a time")
+        with ThreadPoolExecutor(max_workers=max(1, min(jobs, len(todo)))) as pool:
+            for future in [pool.submit(job, *cell) for cell in todo.values()]:
+                future.result()
     table: dict[str, dict[str, dict]] = {m: {} for m in methods}
     paired: dict[str, dict[str, dict]] = {m: {} for m in methods if m != REFERENCE}
     for n in sizes:
-        folder = _dataset(source, out, n or None, seed, split, task)
+        key = str(n or "all")
+        done = set()
         for method in methods:
-            key = str(n or "all")
-            table[method][key] = _fitted(_cell(source, out, method, n or None, folder, seed, split, epochs, task, echo))
-        if REFERENCE in methods:
-            for method, difference in _paired(out, folder, methods, n or None).items():
-                paired[method][str(n or "all")] = difference
+            metrics = _folders(out, method, n or None)[1] / METRICS_FILE
+            if metrics.is_file():
+                table[method][key] = _fitted(json.loads(metrics.read_text()))
+                done.add(method)
+        if REFERENCE in done:
+            for method, difference in _paired(out, folders[n], sorted(done), n or None).items():
+                paired[method][key] = difference
     record = {"source": str(source), "seed": seed, "split": list(split), "sizes": list(sizes), "epochs": epochs}
-    write_json(out / "sweep.json", {"table": table, "paired": paired, **record, "versions": versions()})
+    write_json(
+        out / "sweep.json", {"table": table, "paired": paired, "failed": failed, **record, "versions": versions()}
+    )
     write_text(out / "sweep.md", sweep_markdown(table, paired))
     sweep_figure(table, out / "sweep.png")
+    if failed:
+        raise DiffContactError(
+            f"{len(failed)} cells of the sweep failed: " + "; ".join(f"{k}: {v}" for k, v in failed.items())
+        )
     return table
 
 
