@@ -9,9 +9,13 @@ A f), or, with the rounding, no bounded one at all.  This module states what the
 Definitions (per batch element, on the rows in use: active contacts, without the tangential rows of μ = 0):
 
 - ``ref`` = the largest diagonal entry of A on those rows (λ_max(A) ≤ n·ref).
-- A direction is *flat* if it is an eigenvector of A with eigenvalue |λ| ≤ τ·ref, τ = ``psd_tol(dtype)`` =
-  max(1e-6, 100·eps(dtype)) for the input dtype.  A is *PSD up to rounding* if every eigenvalue is ≥ −τ·ref; an
-  eigenvalue below that makes A genuinely indefinite, an input error (``IndefiniteMatrixError``).
+- A direction is *flat* if it is an eigenvector v of A with eigenvalue |λ| ≤ τ·s_v, τ = ``psd_tol(dtype)`` =
+  max(1e-6, 100·eps(dtype)) for the input dtype, s_v = (Σ_i |v_i| √A_ii)² clipped to [``ROW_FLOOR``·ref, ref]: the
+  scale of the rows v lives on, since a product Z Zᵀ rounds its entries relative to their rows (on an A whose rows
+  are of one scale, s_v ≈ ref; on a badly row-scaled one, such as the limits of a long rope with rows 1e5 times
+  apart, a real eigenvalue far below τ·ref is not taken for rounding).  A is *PSD up to rounding* if every
+  eigenvalue is ≥ −τ·ref; an eigenvalue below that makes A genuinely indefinite, an input error
+  (``IndefiniteMatrixError``).
 - q's component along the flat directions, Π_N q, is a velocity that no contact impulse can change (the joints
   fix it): for physical data q = J v, and Π_N q = 0 when v obeys the joints (J_E v = 0).  The integrator leaves a
   drift (measured in the ground-truth simulation of the gyroscope with μ = 1.2: ‖Π_N q‖/‖q‖ median 1e-4, at most
@@ -65,9 +69,12 @@ ALM_STEPS, ALM_TOL, ALM_ACCEPT = POLICY.alm_steps, POLICY.alm_tol, POLICY.alm_ac
 # miss is below ALM_FLOOR (the inner solves' accuracy at RHO_MAX: measured up to 2e-7), then a proximal step
 # (PROX, below) makes it a minimiser
 ALM_FLOOR, ALM_FAR = POLICY.alm_floor, POLICY.alm_far
-# parts of a unit flat direction up to this are the eigensolver's rounding (≈ eps·ref / gap ≤ eps / τ ≈ 2e-10:
-# the eigenvalues that are not flat lie above τ·ref)
+# parts of a unit flat direction up to this are the eigensolver's rounding (≈ eps·ref / gap ≤ eps / τ ≈ 2e-10 where
+# A's rows are of one scale, its eigenvalues that are not flat then above τ·ref; on a badly row-scaled A the gap can
+# be smaller, and a larger part is kept)
 V_ROUNDING = POLICY.v_rounding
+# an eigenvector's row scale is trusted down to this × ref (its flat threshold then τ·ROW_FLOOR·ref at the least)
+ROW_FLOOR = POLICY.row_floor
 # the proximal step that finishes a stalled least-norm stage: curvature relative to ref (its pull adds ≈ PROX times
 # the iterate's miss to the residual)
 PROX = POLICY.prox
@@ -113,7 +120,13 @@ def _analyse(A, q, used, tol: float, mu=None):
     As = torch.where(mask, A, torch.zeros_like(A)) + torch.diag_embed((~used) * ref[:, None])
     evals, V = torch.linalg.eigh(As)
     indefinite = evals[:, 0] < -tol * ref
-    null = evals.abs() <= tol * ref[:, None]  # (B, n), per eigenvector
+    # (B, n), per eigenvector: small against A's largest diagonal entry, and against the rows it lives on.  A
+    # product Z Zᵀ rounds its entries relative to their rows, so an eigenvector v on rows whose diagonal is far
+    # below the largest (a badly row-scaled A: the limits of a long rope, rows 1e5 times apart) has the scale
+    # (Σ |v_i| √A_ii)², not max(diag A); down to ROW_FLOOR·max(diag A), below which A's absolute rounding (of an A
+    # formed as J M⁻¹ Jᵀ, or of a row that is rounding itself: a contact no velocity can move) may rule
+    row_scale = ((V.abs() * used[:, :, None]).mT @ diag.clamp_min(0).sqrt()[..., None])[..., 0] ** 2
+    null = evals.abs() <= tol * torch.minimum(ref[:, None], torch.maximum(row_scale, ROW_FLOOR * ref[:, None]))
     qs = q * used
     VN = V * null[:, None, :] * used[:, :, None]  # (exactly 0 on rows not in use, where eigh leaves rounding)
     qN = VN.mT @ qs[..., None]

@@ -34,6 +34,8 @@ class SolverPolicy:
     # 1e3 … 1e5; the same value as mu_free by measurement, not by definition)
     mu_max: float = 1e100  # the largest μ accepted: far beyond sticking, far below the ~1e160 where scaling overflows
     # problems whose minimisers are not unique (flat directions)
+    row_floor: float = 1e-2  # an eigenvector's row scale (Σ|v_i|√A_ii)² is trusted down to this × max(diag A) (on
+    # rows 1e5 times apart a real eigenvalue is 9e-7 × it; the stress cases' rounding, absolute, 1e-9 × it)
     far: float = 1e3  # a minimiser farther than this × its range part is solved again for the least-norm one
     tikhonov: float = 1e-12  # ... with this curvature (relative) on its flat directions
     q_tol: float = 0.1  # up to this, drift of the constraint velocities is dropped where a flat direction enters a cone
