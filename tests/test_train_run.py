@@ -330,3 +330,23 @@ def test_a_gpu_is_refused_with_its_reason(tmp_path):
     with pytest.raises(ConfigError, match=r"accelerator = 'gpu' is not one of \['cpu'\]: .* on the CPU"):
         train_run("BP1", out=tmp_path / "run", accelerator="gpu", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data_root, tmp_path, monkeypatch):
+    import diffcontact.train.run as run_module
+    from diffcontact.train.run import stop_patience
+
+    noisy = tmp_path / "noisy"
+    generate_dataset("BP1", noisy, n_train=16, n_val=4, n_test=4, noise=0.05, progress=False)
+    assert stop_patience(noisy / "BP1") == run_module.NOISY_PATIENCE and stop_patience(data_root / "BP1") is None
+    monkeypatch.setattr(run_module, "NOISY_PATIENCE", 2)
+    run = tmp_path / "run"
+    learned = train_run("BP1", epochs=40, out=run, data_root=noisy, batch_size=8, progress=False)
+    with open(next((run / "logs" / "csv").rglob("metrics.csv"))) as fh:
+        val = [float(r["val/loss"]) for r in csv.DictReader(fh) if r["val/loss"]]
+    assert learned["early_stop"] == {"patience": 2, "stopped": True, "planned_epochs": 40}
+    assert learned["epochs_trained"] == len(val) < 40
+    assert min(val[-2:]) >= min(val[:-2])  # (stopped after 2 validations without a better loss ...)
+    assert all(min(val[j - 1 : j + 1]) < min(val[: j - 1]) for j in range(2, len(val) - 1))  # (... and not before)
+    clean = train_run("BP1", epochs=2, out=tmp_path / "clean", data_root=data_root, batch_size=8, progress=False)
+    assert "early_stop" not in clean
