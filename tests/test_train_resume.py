@@ -18,6 +18,12 @@ from diffcontact.train.run import loss_curves, train_run
 WARM_UP = 'ContactLightningModule("BP1").loss((torch.zeros(1, 5, 1, 2), torch.zeros(1, 5, 1, 2)))'
 
 
+def _same_threads() -> str:
+    """Code that gives a child process this process's thread count: a run continued with another one ends a few
+    ulps away (the suite's earlier commands may have set this process's count)."""
+    return f"from diffcontact.threads import set_threads\nset_threads({torch.get_num_threads()})\n"
+
+
 @pytest.fixture(scope="module")
 def data_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
@@ -100,7 +106,7 @@ def test_a_run_killed_by_sigkill_resumes_to_the_same_end(data_root, whole, tmp_p
     run = tmp_path / "killed"
     code = (
         "from diffcontact.train.module import ContactLightningModule\nimport torch\n"
-        f"from diffcontact.train.run import train_run\n{WARM_UP}\n"
+        f"from diffcontact.train.run import train_run\n{_same_threads()}{WARM_UP}\n"
         f"train_run('BP1', out={str(run)!r}, data_root={str(data_root)!r}, progress=False, **{SETTINGS!r})\n"
     )
     proc = subprocess.Popen([sys.executable, "-c", code], env=os.environ.copy(), stderr=subprocess.DEVNULL)
@@ -136,7 +142,7 @@ def atomic_write(path, write):
     writes.append(path.name)
     real(path, half_then_kill(write) if writes.count("last.ckpt") == 3 else write)
 run.atomic_write = atomic_write
-{warm_up}
+{threads}{warm_up}
 train_run("BP1", out=sys.argv[1], data_root=sys.argv[2], progress=False, **{settings!r})
 """
 
@@ -150,7 +156,7 @@ def test_a_checkpoint_half_written_at_a_sigkill_is_never_loaded(data_root, whole
     import sys
 
     run = tmp_path / "killed"
-    code = KILLED_MID_WRITE.format(warm_up=WARM_UP, settings=SETTINGS)
+    code = KILLED_MID_WRITE.format(threads=_same_threads(), warm_up=WARM_UP, settings=SETTINGS)
     proc = subprocess.run(
         [sys.executable, "-c", code, str(run), str(data_root)], stderr=subprocess.DEVNULL, timeout=300
     )
