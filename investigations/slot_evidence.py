@@ -27,7 +27,8 @@ def main() -> None:
             item = learned[key]
             wrong = marked = 0
             print(f"{run} {key}: slot, learned, true, std error, chunks, verdict")
-            for s, (a, b, se, ok) in enumerate(zip(item["learned"], item["true"], item["std_error"], item["identified"])):
+            columns = zip(item["learned"], item["true"], item["std_error"], item["identified"])
+            for s, (a, b, se, ok) in enumerate(columns):
                 off = abs(a - b) > 0.01
                 verdict = "WRONG" if ok and off else ("off, marked" if off else "ok")
                 wrong += verdict == "WRONG"
