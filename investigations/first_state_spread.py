@@ -43,12 +43,10 @@ from diffcontact.systems.registry import build_task
 
 def pose_noise(tosses, table_height, half_extents) -> tuple[float, float]:
     """Position (m) and rotation (rad) noise: the residual spread of the free-flight fits of ``first_states``."""
-    airborne = measured.lowest_corner(tosses, table_height, half_extents) > measured.FLIGHT_CLEARANCE
     R = quaternion_to_matrix(torch.from_numpy(tosses.quaternion))
     res_p, res_r = [], []
-    for i, start in enumerate(tosses.offsets[:-1].tolist()):
-        grounded = np.flatnonzero(~airborne[tosses.frames_of(i)])
-        m = min(measured.FLIGHT_FRAMES, int(grounded[0]) if len(grounded) else int(tosses.lengths[i]))
+    frames = measured.flight_frames(tosses, table_height, half_extents)
+    for start, m in zip(tosses.offsets[:-1].tolist(), frames, strict=True):
         if m < 6:
             continue
         t = np.arange(m) * tosses.dt

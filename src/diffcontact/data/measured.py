@@ -91,6 +91,17 @@ def lowest_corner(tosses: Tosses, table_height: float, half_extents) -> np.ndarr
     return (tosses.position[:, None, 2] - table_height + corners).min(1)
 
 
+def flight_frames(tosses: Tosses, table_height: float, half_extents) -> list[int]:
+    """The frames each toss's first state is fitted to: its first frames of free flight (the lowest corner above
+    ``FLIGHT_CLEARANCE``), at most ``FLIGHT_FRAMES``."""
+    airborne = lowest_corner(tosses, table_height, half_extents) > FLIGHT_CLEARANCE
+    frames = []
+    for i in range(len(tosses.lengths)):
+        grounded = np.flatnonzero(~airborne[tosses.frames_of(i)])
+        frames.append(min(FLIGHT_FRAMES, int(grounded[0]) if len(grounded) else int(tosses.lengths[i])))
+    return frames
+
+
 def first_states(tosses: Tosses, table_height: float, half_extents) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The state each toss is rolled out from: position (n, 3) m, velocity (n, 3) m/s and body-frame angular
     velocity (n, 3) rad/s at its first frame (its recorded quaternion is kept).
@@ -104,11 +115,8 @@ def first_states(tosses: Tosses, table_height: float, half_extents) -> tuple[np.
     velocity, omega = finite_difference_twist(tosses)
     first = tosses.offsets[:-1]
     position, velocity, omega = tosses.position[first].copy(), velocity[first], omega[first]
-    airborne = lowest_corner(tosses, table_height, half_extents) > FLIGHT_CLEARANCE
     R = quaternion_to_matrix(torch.from_numpy(tosses.quaternion))
-    for i, start in enumerate(first.tolist()):
-        grounded = np.flatnonzero(~airborne[tosses.frames_of(i)])
-        m = min(FLIGHT_FRAMES, int(grounded[0]) if len(grounded) else int(tosses.lengths[i]))
+    for i, (start, m) in enumerate(zip(first.tolist(), flight_frames(tosses, table_height, half_extents), strict=True)):
         if m < MIN_FLIGHT_FRAMES:
             continue
         t = np.arange(m) * tosses.dt
