@@ -184,35 +184,6 @@ def test_solution_does_not_depend_on_the_batch_around_it(d):
         assert torch.equal(a.grad[17:18], b.grad)
 
 
-_POSITIONS = """
-import sys
-import numpy as np
-import torch
-from diffcontact.solver import solve_cone_qp
-data = np.load(sys.argv[1])
-A, q, mu, active = (torch.from_numpy(data[k]) for k in ("A", "q", "mu", "active"))
-for order in ([0, 1], [1, 0], [1], [1, 1]):
-    f, info = solve_cone_qp(A[order], q[order], mu[order], None, active[order], on_failure="count", return_info=True)
-    at = order.index(1)
-    print(int(info.status[at]), f[at].numpy().tobytes().hex())
-"""
-
-
-def test_an_ill_conditioned_element_gets_the_same_outcome_wherever_it_sits_in_the_batch_with_mkl_cbwr():
-    """Two limit problems of a rope trained on noisy data (float64, from its evaluation): the second's effective mass
-    has diagonal entries from 1.3 to 4.5e9 (condition about 1e11, 11 of its 16 directions flat).  MKL's results
-    depend on memory alignment, and on this machine its status depended on where it sat in the batch (NUMERICAL
-    second in this pair, CONVERGED alone or first).  With MKL_CBWR=AUTO,STRICT set before torch loads, the outcome
-    and the answer are the same everywhere (NUMERICAL: the problem's own failure, not fixed).  Not yet the package's
-    default: docs/solver.md."""
-    env = dict(os.environ, MKL_CBWR="AUTO,STRICT")
-    fixture = str(Path(__file__).parent / "data" / "noisy_rope_batch.npz")
-    out = subprocess.run([sys.executable, "-c", _POSITIONS, fixture], env=env, capture_output=True, text=True)
-    assert out.returncode == 0, out.stderr
-    lines = out.stdout.split()
-    assert len(lines) == 8 and len(set(lines[0::2])) == 1 and len(set(lines[1::2])) == 1, lines[0::2]
-
-
 def test_degenerate_gradient_is_reproducible(monkeypatch):
     """An element whose adjoint needs the least-squares fallback (a singular K: rank-1 A in 3D) gets the same
     gradient bit for bit on every run and alone or in its batch (it varied in the last digits with

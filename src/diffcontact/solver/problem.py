@@ -33,6 +33,7 @@ START_MARGIN, ROBUST_MARGIN = POLICY.start_margin, POLICY.robust_margin
 FAR, TIKHONOV, MU_CAP = POLICY.far, POLICY.tikhonov, POLICY.mu_cap
 # (plain ints: an IntEnum member costs a µs per access in Python 3.11)
 _CONVERGED, _INACCURATE, _MAX_ITER = int(Status.CONVERGED), int(Status.INACCURATE), int(Status.MAX_ITER)
+_NUMERICAL = int(Status.NUMERICAL)
 assert _CONVERGED == 0  # (``not np.count_nonzero(status)``: all converged)
 # (on the path of every call: ``np.count_nonzero`` where possible, 3× faster than ``.any()`` on small arrays)
 
@@ -711,7 +712,7 @@ def _solve_passes(A, T, c, l_hat, on_q, on_l, d, idx, passes, options, start_mar
         if kept is not None:
             now = out.status[idx]
             kept_res = kept["residual"]
-            better = ((now == _INACCURATE) | (now == _MAX_ITER)) & (kept_res < out.residual[idx])
+            better = ((now == _INACCURATE) | (now == _MAX_ITER)) & (kept_res < out.residual[idx]) | (now == _NUMERICAL)
             better &= (kept_res <= tols["final_tol"]) | (kept["status"] == _INACCURATE)
             if better.any():
                 rows = idx[better]

@@ -276,8 +276,11 @@ static M factor(Work<D>& w, const V* w2l, const V* w2q, M run) {
   if (!any(run & ~ok)) return ok;
   V m = splat(1.0);
   for (int i = 0; i < n; i++) m = vmax(m, vabs(h(i, i)));
-  for (int i = 0; i < n; i++) w.Hb[i * D + i % D] += sel(ok, splat(0.0), 1e-13 * m);
-  return cholesky(n, h, w.L);
+  for (double shift = 1e-13; shift <= 1e-7 && any(run & ~ok); shift *= 1e3) {
+    for (int i = 0; i < n; i++) w.Hb[i * D + i % D] += sel(ok, splat(0.0), shift * m);
+    ok = cholesky(n, h, w.L);
+  }
+  return ok;
 }
 
 // Largest α ≥ 0 keeping x + α dx in the cone (x inside); inf if none.
