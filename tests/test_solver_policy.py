@@ -67,6 +67,34 @@ def test_contact_solver_counts_failures_and_returns_zero_impulses_for_them(fail_
     assert solver.calls == solver.problems == solver.failures == 0
 
 
+def test_contact_solver_keeps_the_first_failed_problems_as_given_and_they_solve_again(fail_element_1, tmp_path):
+    """With ``keep`` the first failed problems are kept as they were given (dtype included), written and read back
+    by ``save_failed`` / ``load_failed`` bit for bit, and solve again from the file (here, with the forced failure
+    gone, to the answer of the whole batch)."""
+    from diffcontact.solver import solve_cone_qp
+    from diffcontact.solver.contact_solver import load_failed, save_failed
+
+    A, q, mu = (t.float() for t in _problems())
+    lower = torch.zeros_like(mu)
+    expected = ContactSolver()(A, q, mu, lower)
+    fail_element_1["code"] = Status.NUMERICAL
+    solver = ContactSolver(on_failure="count", keep=1)
+    for _ in range(2):
+        solver(A, q, mu, lower)
+    assert solver.failures == 2 and len(solver.failed) == 1  # (the second failure is counted, not kept)
+    kept = solver.failed[0]
+    assert set(kept) == {"A", "q", "mu", "lower", "status"} and int(kept["status"]) == Status.NUMERICAL
+    assert kept["A"].dtype == np.float32 and np.array_equal(kept["A"], A[1].numpy())
+    assert np.array_equal(kept["q"], q[1].numpy()) and np.array_equal(kept["mu"], mu[1].numpy())
+    back = load_failed(save_failed(tmp_path / "failed.npz", solver.failed))
+    assert len(back) == 1 and all(np.array_equal(back[0][k], kept[k]) for k in kept)
+    fail_element_1.clear()
+    f = solve_cone_qp(*(torch.from_numpy(back[0][k])[None] for k in ("A", "q", "mu", "lower")))
+    assert torch.equal(f[0], expected[1])
+    solver.reset()
+    assert solver.failed == [] and solver.failures == 0
+
+
 def test_contact_solver_passes_its_options_and_rejects_an_unknown_policy():
     A, q, mu = _problems()
     seen = {}

@@ -6,6 +6,7 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -14,8 +15,9 @@ from diffcontact.data.generate import generate_dataset
 from diffcontact.data.store import load_split
 from diffcontact.errors import ConfigError
 from diffcontact.models import build_model
+from diffcontact.solver import Status
 from diffcontact.train.config import TrainConfig, resolve_preset, task_training
-from diffcontact.train.module import ContactLightningModule
+from diffcontact.train.module import KEEP_FAILED, ContactLightningModule
 from diffcontact.train.run import planned_epochs, train_run
 from diffcontact.train.summary import learned_summary, slot_contacts
 
@@ -63,6 +65,34 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     rates = [float(r["train/lr"]) for r in csv.DictReader(log)
              if r.get("train/lr")]  # fmt: skip
     assert rates[0] == pytest.approx(1e-2) and rates[1] == pytest.approx(0.5 * (1e-2 + 1e-4))  # cosine, halfway
+
+
+def test_a_run_whose_solver_fails_saves_the_failed_problems(data_root, tmp_path, monkeypatch):
+    """Failed contact problems are counted in learned.json and the first ones saved beside it, to be solved again;
+    a resumed run adds its own after the earlier ones."""
+    import diffcontact.train.module as module
+    from diffcontact.solver import ContactSolver, solve_cone_qp
+    from diffcontact.solver.contact_solver import load_failed
+
+    def first_element_fails(*args, **kw):  # (in the training module's solver only: the summary's must not fail)
+        f, info = solve_cone_qp(*args, **kw)
+        info.status[0] = Status.NUMERICAL
+        return f, info
+
+    monkeypatch.setattr(module, "ContactSolver", lambda **kw: ContactSolver(**kw, backend=first_element_fails))
+    run = tmp_path / "run"
+    learned = train_run(
+        "BP1", epochs=1, out=run, data_root=data_root, batch_size=8, schedule="constant", progress=False
+    )
+    assert learned["solver_failures"] > 0 and learned["solver_failures_saved"] == "solver_failures.npz"
+    saved = load_failed(run / "solver_failures.npz")
+    assert len(saved) == min(KEEP_FAILED, learned["solver_failures"])
+    assert all(int(p["status"]) == Status.NUMERICAL and p["A"].shape == (len(p["q"]),) * 2 for p in saved)
+    again = train_run("BP1", epochs=2, out=run, data_root=data_root, batch_size=8, resume=True, progress=False)
+    both = load_failed(run / "solver_failures.npz")
+    assert again["solver_failures"] > learned["solver_failures"]
+    assert len(both) == min(KEEP_FAILED, again["solver_failures"])
+    assert all(np.array_equal(a["A"], b["A"]) for a, b in zip(saved, both))
 
 
 def test_resume_continues_to_more_epochs(data_root, tmp_path):

@@ -26,6 +26,7 @@ CHECKPOINTS = "checkpoints"
 LAST_CHECKPOINT = "last.ckpt"
 METRICS = "metrics.json"
 EVAL = "eval"
+SOLVER_FAILURES = "solver_failures.npz"
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,11 @@ class RunDir:
     @property
     def coef_start(self) -> Path:
         return self.path / COEF_START
+
+    @property
+    def solver_failures(self) -> Path:
+        """The contact problems the solver failed on in training (``contact_solver.save_failed``), if any."""
+        return self.path / SOLVER_FAILURES
 
     @property
     def checkpoints(self) -> Path:

@@ -2,7 +2,9 @@
 
 ``ContactSolver()`` raises :class:`~diffcontact.errors.ContactSolverError` on a failed problem (the default: no
 silent zero impulses); ``ContactSolver(on_failure="count")`` continues with zero impulses for the failed problems,
-logs a warning and counts them by status (training, the simulation benchmark).
+logs a warning and counts them by status (training, the simulation benchmark), and with ``keep`` > 0 keeps the first
+failed problems as they were given, so that they can be saved (``save_failed``), loaded (``load_failed``) and solved
+again.
 """
 
 from __future__ import annotations
@@ -10,11 +12,13 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
 
+from diffcontact.files import save_npz
 from diffcontact.solver.policy import POLICY
 from diffcontact.solver.problem import solve_cone_qp
 from diffcontact.solver.status import Status, is_failure
@@ -32,7 +36,8 @@ class ContactSolver:
     """Solves batches of contact cone QPs with ``backend`` (signature and options of
     :func:`~diffcontact.solver.solve_cone_qp`, which is the default) and counts what it did.
 
-    tol, acceptable_tol, max_iter: passed to the back end; on_failure: "raise" or "count" (see the module doc).
+    tol, acceptable_tol, max_iter: passed to the back end; on_failure: "raise" or "count" (see the module doc);
+    keep: how many failed problems to keep in ``failed`` (0: none).
     Counters: ``calls`` (batches solved), ``counts`` (problems by :class:`Status`, all codes).
     """
 
@@ -41,7 +46,9 @@ class ContactSolver:
     max_iter: int = POLICY.max_iter
     on_failure: Literal["raise", "count"] = "raise"
     backend: Callable = field(default=solve_cone_qp, repr=False)
+    keep: int = 0
     calls: int = field(default=0, init=False)
+    failed: list[dict[str, np.ndarray]] = field(default_factory=list, init=False, repr=False)
     counts: np.ndarray = field(default_factory=lambda: np.zeros(len(Status), dtype=np.int64), init=False, repr=False)
 
     def __post_init__(self):
@@ -77,7 +84,17 @@ class ContactSolver:
             if np.count_nonzero(failed):
                 names = {Status(c).name: int(n) for c, n in enumerate(failed) if n}
                 log.warning("contact solver failed for %s of %d problems; their impulses are zero", names, len(f))
+                if len(self.failed) < self.keep:
+                    self._keep(A, q, mu, lower, active, info.status.numpy())
         return f
+
+    def _keep(self, A, q, mu, lower, active, status: np.ndarray) -> None:
+        """Keep the failed elements of this batch (as given: dtype and all) up to ``keep``."""
+        for b in np.flatnonzero(is_failure(status))[: self.keep - len(self.failed)].tolist():
+            problem = {"A": A[b], "q": q[b], "mu": mu[b], "status": np.int64(status[b])}
+            problem |= {"lower": lower[b]} if lower is not None else {}
+            problem |= {"active": active[b]} if active is not None else {}
+            self.failed.append({k: v.detach().cpu().numpy() if torch.is_tensor(v) else v for k, v in problem.items()})
 
     @property
     def problems(self) -> int:
@@ -95,6 +112,24 @@ class ContactSolver:
         return sum(self.failures_by_status.values())
 
     def reset(self) -> None:
-        """Set the counters to zero."""
+        """Set the counters to zero and forget the kept problems."""
         self.calls = 0
         self.counts[:] = 0
+        self.failed.clear()
+
+
+def save_failed(path: str | Path, problems: list[dict[str, np.ndarray]]) -> Path:
+    """Write failed problems (``ContactSolver.failed``) to ``path`` (.npz, atomically): for problem i the arrays
+    ``i/A`` (n, n), ``i/q`` (n,), ``i/mu`` (K,), ``i/status`` () and, where given, ``i/lower``, ``i/active`` (K,)."""
+    return save_npz(path, **{f"{i}/{k}": v for i, problem in enumerate(problems) for k, v in problem.items()})
+
+
+def load_failed(path: str | Path) -> list[dict[str, np.ndarray]]:
+    """The problems of a ``save_failed`` file, in order; each solves again with
+    ``solve_cone_qp(*(torch.from_numpy(p[k])[None] for k in ("A", "q", "mu")), lower, active)``."""
+    with np.load(path) as data:
+        problems: dict[int, dict[str, np.ndarray]] = {}
+        for key in data.files:
+            i, name = key.split("/")
+            problems.setdefault(int(i), {})[name] = data[key]
+    return [problems[i] for i in sorted(problems)]

@@ -32,6 +32,8 @@ from diffcontact.train.config import TrainConfig
 
 log = logging.getLogger(__name__)
 
+KEEP_FAILED = 100  # failed contact problems a training run keeps for diagnosis (RUN/solver_failures.npz)
+
 _FAILED = [s.name for s in Status if is_failure(s)]  # (the statuses counted as solver failures)
 
 
@@ -72,7 +74,8 @@ class ContactLightningModule(pl.LightningModule):
         self.save_hyperparameters()  # (task, model and the settings given: what load_from_checkpoint passes back)
         self.automatic_optimization = False
         self.task = build_task(task)
-        self.solver = ContactSolver(on_failure="count")  # (continues with zero impulses, counts and logs failures)
+        # (continues with zero impulses, counts and logs failures, and keeps the first ones: RUN/solver_failures.npz)
+        self.solver = ContactSolver(on_failure="count", keep=KEEP_FAILED)
         self._failures_before: Counter[str] = Counter()  # (restored from a checkpoint)
         self.skipped_steps = 0  # (optimiser steps skipped: the same on every process)
         self.forward_failures = 0  # (this process's)

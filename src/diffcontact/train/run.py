@@ -24,11 +24,12 @@ from diffcontact.files import TMP_PREFIX, atomic_write, save_figure, versions, w
 from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.run_dir import RunDir
+from diffcontact.solver.contact_solver import load_failed, save_failed
 from diffcontact.train.coef_start import scan_coefficients
 from diffcontact.train.config import TrainConfig
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.identify import refine
-from diffcontact.train.module import ContactLightningModule, quiet_lightning
+from diffcontact.train.module import KEEP_FAILED, ContactLightningModule, quiet_lightning
 from diffcontact.train.summary import learned_summary
 
 
@@ -285,9 +286,22 @@ def train_run(
             summary["early_stop"] = {"patience": patience, "stopped": stopped, "planned_epochs": max_epochs}
         summary["run_dir"] = str(run.path)
         if trainer.is_global_zero:
+            if _save_failed(run, module.solver.failed):
+                summary["solver_failures_saved"] = run.solver_failures.name
             write_json(run.learned, summary)
             plot_losses(run.path / "logs" / "csv", run.path / "loss.png")
         return summary
+
+
+def _save_failed(run: RunDir, problems: list[dict]) -> bool:
+    """Add this session's failed contact problems (``ContactSolver.failed``: this process's first ones) to the
+    run's ``solver_failures.npz`` (a resumed run's earlier ones kept first), at most ``KEEP_FAILED`` in all; returns
+    whether the file exists."""
+    path = run.solver_failures
+    if problems:
+        before = load_failed(path) if path.is_file() else []
+        save_failed(path, (before + problems)[: max(KEEP_FAILED, len(before))])
+    return path.is_file()
 
 
 def _check_launch(accelerator: str, devices: int | None, num_nodes: int | None) -> None:
