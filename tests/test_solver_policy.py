@@ -83,7 +83,9 @@ def test_contact_solver_keeps_the_first_failed_problems_as_given_and_they_solve_
         solver(A, q, mu, lower)
     assert solver.failures == 2 and len(solver.failed) == 1  # (the second failure is counted, not kept)
     kept = solver.failed[0]
-    assert set(kept) == {"A", "q", "mu", "lower", "status"} and int(kept["status"]) == Status.NUMERICAL
+    assert set(kept) == {"A", "q", "mu", "lower", "status", "index", "batch_A", "batch_q", "batch_mu", "batch_lower"}
+    assert int(kept["status"]) == Status.NUMERICAL and int(kept["index"]) == 1
+    assert np.array_equal(kept["batch_A"], A.numpy()) and np.array_equal(kept["batch_mu"], mu.numpy())
     assert kept["A"].dtype == np.float32 and np.array_equal(kept["A"], A[1].numpy())
     assert np.array_equal(kept["q"], q[1].numpy()) and np.array_equal(kept["mu"], mu[1].numpy())
     back = load_failed(save_failed(tmp_path / "failed.npz", solver.failed))

@@ -89,12 +89,15 @@ class ContactSolver:
         return f
 
     def _keep(self, A, q, mu, lower, active, status: np.ndarray) -> None:
-        """Keep the failed elements of this batch (as given: dtype and all) up to ``keep``."""
+        """Keep the failed elements of this batch (as given: dtype and all) up to ``keep``, each with its position
+        ``index`` and the whole batch (``batch_A`` …): an ill-conditioned element's outcome can depend on the batch
+        around it (docs/solver.md, "Reproducible across batch positions")."""
+        given = {"A": A, "q": q, "mu": mu} | ({"lower": lower} if lower is not None else {})
+        given |= {"active": active} if active is not None else {}
+        given = {k: v.detach().cpu().numpy() for k, v in given.items()}
         for b in np.flatnonzero(is_failure(status))[: self.keep - len(self.failed)].tolist():
-            problem = {"A": A[b], "q": q[b], "mu": mu[b], "status": np.int64(status[b])}
-            problem |= {"lower": lower[b]} if lower is not None else {}
-            problem |= {"active": active[b]} if active is not None else {}
-            self.failed.append({k: v.detach().cpu().numpy() if torch.is_tensor(v) else v for k, v in problem.items()})
+            problem = {k: v[b] for k, v in given.items()} | {"status": np.int64(status[b]), "index": np.int64(b)}
+            self.failed.append(problem | {f"batch_{k}": v for k, v in given.items()})
 
     @property
     def problems(self) -> int:
@@ -120,7 +123,8 @@ class ContactSolver:
 
 def save_failed(path: str | Path, problems: list[dict[str, np.ndarray]]) -> Path:
     """Write failed problems (``ContactSolver.failed``) to ``path`` (.npz, atomically): for problem i the arrays
-    ``i/A`` (n, n), ``i/q`` (n,), ``i/mu`` (K,), ``i/status`` () and, where given, ``i/lower``, ``i/active`` (K,)."""
+    ``i/A`` (n, n), ``i/q`` (n,), ``i/mu`` (K,), ``i/status`` (), ``i/index`` () and, where given, ``i/lower``,
+    ``i/active`` (K,), and its batch ``i/batch_A`` (B, n, n) … (the element is row ``index`` of it)."""
     return save_npz(path, **{f"{i}/{k}": v for i, problem in enumerate(problems) for k, v in problem.items()})
 
 
