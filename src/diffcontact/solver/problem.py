@@ -268,7 +268,9 @@ def solve_cone_qp(
         active = torch.from_numpy(arrays[4])
         A, q, flats = least_norm.project_flat(A, q, mu, active, d, least_norm.psd_tol(out_dtype), found)
         if flats.consistent.any():
-            f, result = _solve_least_norm(A, q, mu, lower, active, d, flats, opts)
+            # (the policy applied once at the end: a failed first solve may still be rescued, _near_least_norm)
+            f, result = _solve_least_norm(A, q, mu, lower, active, d, flats, (*opts[:3], "count"))
+            _raise_on_failure(result.status, opts[3])
         else:
             f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
     else:
@@ -606,10 +608,12 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
             first, first_result = _solve_with_retries(
                 A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d, *opts
             )
+            failed = is_failure(first_result.status)
             near = _near_least_norm(
                 A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d,
-                flats.subset(flats.consistent), first, first_result.status, opts,
+                flats.subset(flats.consistent), first, first_result, opts,
             )  # fmt: skip
+            rescued = failed & ~is_failure(first_result.status)
             spread, inner = least_norm.nonunique(
                 near,
                 flats.subset(flats.consistent),
@@ -620,16 +624,20 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
                 _cone_qp(mu[sub], lower[sub], active[sub], d, opts),
                 first=first,
             )
-        nonunique = torch.zeros_like(flats.consistent)
+        nonunique, centred = torch.zeros_like(flats.consistent), torch.zeros_like(flats.consistent)
         nonunique[flats.consistent] = spread
-        A, q = least_norm.centre_on(A, q, flats, nonunique, inner[spread])
+        # (and where the first solve failed and the one with curvature did not, the problem as it is would fail
+        # again: centred on that answer, it has the same minimiser and curvature on its flat directions)
+        rescued = torch.from_numpy(rescued)
+        centred[flats.consistent] = spread | rescued
+        A, q = least_norm.centre_on(A, q, flats, centred, inner[spread | rescued])
         f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
         result.status[sub.numpy()] = np.maximum(result.status[sub.numpy()], first_result.status)
         treated = nonunique
     else:
         f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
         treated = flats.consistent
-        f = _near_least_norm(A, q, mu, lower, active, d, flats, f, result.status, opts)
+        f = _near_least_norm(A, q, mu, lower, active, d, flats, f, result, opts)
     solve = _cone_qp(mu, lower, active, d, opts)
     f, status = least_norm.minimum_norm(f, flats, mu, lower, active, d, solve, problem, sel=treated)
     rows = flats.idx[treated].numpy()
@@ -638,10 +646,11 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     return torch.where(torch.from_numpy(is_failure(result.status))[:, None], torch.zeros_like(f), f), result
 
 
-def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts: tuple[float, float, int, str]):
+def _near_least_norm(A, q, mu, lower, active, d, flats, f, first, opts: tuple[float, float, int, str]):
     """The minimisers f (B, n) of the consistent elements of ``flats`` (a first solve of the batch (A, q, …), whose
-    statuses ``status`` (B,) are updated in place) that lie farther than ``FAR`` times the size of their range part
-    from 0, replaced by a second solve with a curvature ``TIKHONOV``·ref on the flat directions.  Returns f.
+    result ``first``'s status and residual (B,) are updated in place) that lie farther than ``FAR`` times the size of
+    their range part from 0, or whose first solve failed, replaced by a second solve with a curvature
+    ``TIKHONOV``·ref on the flat directions.  Returns f.
 
     Where the set of minimisers is unbounded (a flat direction inside the cones), the first solve can end anywhere
     on it: 2e7 times farther than the least-norm point in a stress problem, accurate relative to that size only, so
@@ -652,8 +661,10 @@ def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts: tuple[f
     rows = flats.idx[flats.consistent]
     x = f[rows]
     range_part = x - (flats.PiN[flats.consistent] @ x[..., None])[..., 0]
+    status = first.status
+    failed = torch.from_numpy(is_failure(status[rows.numpy()]))
     far = torch.zeros_like(flats.consistent)
-    far[flats.consistent] = x.abs().amax(-1) > FAR * range_part.abs().amax(-1)
+    far[flats.consistent] = (x.abs().amax(-1) > FAR * range_part.abs().amax(-1)) | failed
     if not far.any():
         return f
     rows = flats.idx[far]
@@ -661,9 +672,13 @@ def _near_least_norm(A, q, mu, lower, active, d, flats, f, status, opts: tuple[f
     # (a failure keeps the first answer: never raised here)
     again, result = _solve_with_retries(A_t, q[rows], mu[rows], lower[rows], active[rows], d, *opts[:3], "count")
     ok = ~is_failure(result.status)
-    rows_ok = rows[torch.from_numpy(ok)]
-    status[rows_ok.numpy()] = np.maximum(status[rows_ok.numpy()], result.status[ok])
-    return f.index_copy(0, rows_ok, again[torch.from_numpy(ok)].to(f.dtype))
+    rows_ok = rows[torch.from_numpy(ok)].numpy()
+    # (a first solve that failed takes this one's status: ill-conditioned along its flat directions, it can fail
+    # where the problem with the curvature does not)
+    was_failed = is_failure(status[rows_ok])
+    status[rows_ok] = np.where(was_failed, result.status[ok], np.maximum(status[rows_ok], result.status[ok]))
+    first.residual[rows_ok[was_failed]] = result.residual[ok][was_failed]
+    return f.index_copy(0, torch.from_numpy(rows_ok), again[torch.from_numpy(ok)].to(f.dtype))
 
 
 def _cone_qp(mu, lower, active, d, opts):
