@@ -96,7 +96,10 @@ class ContactSolver:
         given |= {"active": active} if active is not None else {}
         given = {k: v.detach().cpu().numpy() for k, v in given.items()}
         for b in np.flatnonzero(is_failure(status))[: self.keep - len(self.failed)].tolist():
-            problem = {k: v[b] for k, v in given.items()} | {"status": np.int64(status[b]), "index": np.int64(b)}
+            problem = {k: v[b] for k, v in given.items()} | {
+                "status": np.asarray(status[b], np.int64),
+                "index": np.asarray(b, np.int64),
+            }
             self.failed.append(problem | {f"batch_{k}": v for k, v in given.items()})
 
     @property
