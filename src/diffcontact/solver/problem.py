@@ -613,7 +613,7 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
                 A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d,
                 flats.subset(flats.consistent), first, first_result, opts,
             )  # fmt: skip
-            rescued = failed & ~is_failure(first_result.status)
+            rescued = torch.from_numpy(failed & ~is_failure(first_result.status))
             spread, inner = least_norm.nonunique(
                 near,
                 flats.subset(flats.consistent),
@@ -628,7 +628,6 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
         nonunique[flats.consistent] = spread
         # (and where the first solve failed and the one with curvature did not, the problem as it is would fail
         # again: centred on that answer, it has the same minimiser and curvature on its flat directions)
-        rescued = torch.from_numpy(rescued)
         centred[flats.consistent] = spread | rescued
         A, q = least_norm.centre_on(A, q, flats, centred, inner[spread | rescued])
         f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
@@ -727,7 +726,8 @@ def _solve_passes(A, T, c, l_hat, on_q, on_l, d, idx, passes, options, start_mar
         if kept is not None:
             now = out.status[idx]
             kept_res = kept["residual"]
-            better = ((now == _INACCURATE) | (now == _MAX_ITER)) & (kept_res < out.residual[idx]) | (now == _NUMERICAL)
+            stalled = ((now == _INACCURATE) | (now == _MAX_ITER)) & (kept_res < out.residual[idx])
+            better = stalled | (now == _NUMERICAL)
             better &= (kept_res <= tols["final_tol"]) | (kept["status"] == _INACCURATE)
             if better.any():
                 rows = idx[better]
