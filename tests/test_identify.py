@@ -5,6 +5,7 @@ moves marked not identified."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -14,6 +15,8 @@ from diffcontact.models.model import build_model
 from diffcontact.state import State
 from diffcontact.systems.registry import build_task
 from diffcontact.train.identify import chunk_slots, evidence, information, refine
+
+DATA = Path(__file__).parent / "data"
 
 
 def _true_model(task):
@@ -88,7 +91,7 @@ def test_a_property_nothing_moves_has_no_standard_error_and_is_not_identified():
         net.params.e_raw.fill_(0.03)
     ev = evidence(net, x, v)
     assert ev["chunks"][0] > 0
-    assert ev["mu"] == {"std_error": [None], "identified": [False]}
+    assert ev["mu"] == {"std_error": [None], "bootstrap_error": [None], "identified": [False]}
     assert ev["e"]["std_error"][0] is not None and math.isfinite(ev["e"]["std_error"][0])
 
 
@@ -105,3 +108,29 @@ def test_refinement_moves_what_the_data_identify_to_the_truth_and_leaves_the_res
     assert record["mu_before"] == [0.5] and record["e_before"] == [pytest.approx(0.03)] and record["iterations"] > 0
     assert float(net.params.mu_raw.detach()) == 0.5
     assert float(net.params.e_raw.detach()) == pytest.approx(float(task.params.e[0]), abs=2e-3)
+
+
+def test_where_the_model_is_right_and_the_noise_small_the_bootstrap_agrees_with_the_standard_error():
+    # an unbiased estimator: a refit on data simulated again with fresh noise spreads as the chunks do
+    task = build_task("BP1")
+    x, v = _chunks(task, 600, seed=3, noise=1e-4)
+    ev = evidence(_true_model(task), x, v, noise=1e-4)
+    for key in ("mu", "e"):
+        se, boot = ev[key]["std_error"][0], ev[key]["bootstrap_error"][0]
+        assert 1 / 3 < boot / se < 3, (key, se, boot)
+        assert ev[key]["identified"] == [se <= 0.005 and boot <= 0.005] == [True]
+    assert evidence(_true_model(task), x, v)["e"]["bootstrap_error"] == [None]  # (no noise recorded: no bootstrap)
+
+
+def test_the_bootstrap_marks_a_restitution_biased_by_noisy_first_states_as_not_identified():
+    # a Rope trained on data with noise 0.05 (a link's length): CM-CD-CLNN's learned model (its masses, potential
+    # and e = 0.299; the truth is 0) and 16 of its training chunks.  Their standard error is 0.004, which alone would
+    # mark e identified; every chunk starts from a noisy state, which biases e without widening its spread
+    task = build_task("Rope")
+    stored = torch.load(DATA / "rope_noisy_biased_model.pt", weights_only=True)
+    net = build_model(task, "CM-CD-CLNN", potential="linked")
+    net.load_state_dict(stored["state_dict"])
+    ev = evidence(net, stored["chunk_x"], stored["chunk_v"], noise=stored["noise"])
+    assert float(net.params.e_raw.detach()) == pytest.approx(0.2988, abs=1e-4)
+    assert ev["e"]["std_error"][0] < 0.005 and ev["e"]["bootstrap_error"][0] > 0.05
+    assert ev["e"]["identified"] == [False]

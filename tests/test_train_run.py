@@ -39,7 +39,7 @@ def test_run_directory_and_learned_json(data_root, tmp_path):
     assert learned == json.loads(json.dumps(summary))
     for key in ("mu", "e", "mass_ratio"):
         item = learned[key]
-        evidence = {"identifiable", "std_error", "identified", "max_abs_error_identified"}
+        evidence = {"identifiable", "std_error", "bootstrap_error", "identified", "max_abs_error_identified"}
         assert set(item) == {"learned", "true", "max_abs_error"} | (evidence if key != "mass_ratio" else set())
         assert len(item["learned"]) == len(item["true"])
         err = max(abs(a - b) for a, b in zip(item["learned"], item["true"]))
@@ -380,3 +380,5 @@ def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data
     assert all(min(val[j - 1 : j + 1]) < min(val[: j - 1]) for j in range(2, len(val) - 1))  # (... and not before)
     clean = train_run("BP1", epochs=2, out=tmp_path / "clean", data_root=data_root, batch_size=8, progress=False)
     assert "early_stop" not in clean
+    # the marking takes the recorded noise into account (a parametric bootstrap, train/identify.py); clean data: none
+    assert all(b is not None for b in learned["e"]["bootstrap_error"]) and set(clean["e"]["bootstrap_error"]) == {None}

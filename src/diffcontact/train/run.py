@@ -337,16 +337,19 @@ def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, process
     # (the best checkpoint is in this run's folder, also when the folder was moved: _RunCheckpoint)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
     splits = data.splits["train"], data.splits["val"]
-    refined, best = _refined(chosen, *splits, best, run.checkpoints, write=trainer.is_global_zero)
+    noise = recorded_noise(data.folder)
+    refined, best = _refined(chosen, *splits, best, run.checkpoints, noise, write=trainer.is_global_zero)
     summary = _summary(chosen, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
     return summary | ({"refinement": refined} if refined else {})
 
 
-def _refined(chosen: ContactLightningModule, train, val, best: str, folder: Path, write: bool) -> tuple[dict, str]:
-    """The chosen checkpoint's μ and e refined by Gauss–Newton on the ``train`` split's chunks
-    (``identify.refine``), kept if the loss on the ``val`` split's does not rise, and saved as ``folder``/refined-NAME
-    (``write``: this process writes it).  Returns the refinement's record ({} for a model without
-    learned contacts) and the checkpoint to use."""
+def _refined(
+    chosen: ContactLightningModule, train, val, best: str, folder: Path, noise: float, write: bool
+) -> tuple[dict, str]:
+    """The chosen checkpoint's μ and e refined by Gauss–Newton on the ``train`` split's chunks, recorded with
+    observation noise ``noise`` (``identify.refine``), kept if the loss on the ``val`` split's does not rise, and
+    saved as ``folder``/refined-NAME (``write``: this process writes it).  Returns the refinement's record ({} for
+    a model without learned contacts) and the checkpoint to use."""
     learned = chosen.learned
     if not chosen.learns_contacts or not best or learned is None:
         return {}, best
@@ -357,7 +360,7 @@ def _refined(chosen: ContactLightningModule, train, val, best: str, folder: Path
             return float(chosen.loss((val.chunk_x, val.chunk_v)))
 
     started, before = time.perf_counter(), val_loss()
-    record = refine(chosen.net, train.chunk_x, train.chunk_v)
+    record = refine(chosen.net, train.chunk_x, train.chunk_v, noise=noise)
     after = val_loss() if record["iterations"] else before
     record |= {"val_loss_before": before, "val_loss_after": after}
     if not after <= before:  # (worse on the validation split: the checkpoint as trained)
@@ -418,7 +421,12 @@ def _record(run: RunDir, config: TrainConfig, accelerator: str, first: bool) -> 
 def stop_patience(folder: str | Path) -> int | None:
     """Validations without a better validation loss after which a run on the dataset in ``folder`` stops:
     ``NOISY_PATIENCE`` where the dataset records observation noise, else None (all the planned epochs)."""
-    return NOISY_PATIENCE if load_meta(folder)["request"].get("noise") else None
+    return NOISY_PATIENCE if recorded_noise(folder) else None
+
+
+def recorded_noise(folder: str | Path) -> float:
+    """The standard deviation of the observation noise the dataset in ``folder`` records (0: none)."""
+    return float(load_meta(folder)["request"].get("noise") or 0.0)
 
 
 def _trainer(
@@ -486,7 +494,7 @@ def _summary(chosen: ContactLightningModule, data: ContactDataModule, run: RunDi
     """What the checkpoint chosen on the validation split learned, and what the training data can identify; a
     measured dataset's table height; where μ and e started."""
     train = data.splits["train"]
-    summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
+    summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v, recorded_noise(data.folder))
     request = load_meta(data.folder)["request"]
     if request.get("measured"):  # (the table's height is the importer's estimate, not learned)
         summary["table_height_m"] = {"value": request["table_height_m"], "how": request["table_height_method"]}
@@ -516,8 +524,10 @@ def summarize_run(run: str | Path) -> dict:
     train, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
     refined = {}
     if "refinement" not in old:  # (a run trained before the refinement: refined now, as training does)
-        refined, old["best_checkpoint"] = _refined(chosen, train, val, str(best), run_dir.checkpoints, write=True)
-    fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v)
+        refined, old["best_checkpoint"] = _refined(
+            chosen, train, val, str(best), run_dir.checkpoints, recorded_noise(folder), write=True
+        )
+    fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v, recorded_noise(folder))
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
     summary = {**fresh, **kept} | ({"refinement": refined} if refined else {})
     write_json(run_dir.learned, summary)

@@ -112,13 +112,14 @@ def compare(learned: torch.Tensor, true: torch.Tensor, identifiable: torch.Tenso
     return out
 
 
-def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> dict:
+def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noise: float = 0.0) -> dict:
     """``{"mu", "e", "mass_ratio"[, "moments"], "inertia", "collisions", "collisions_slipping",
     "collisions_bound", "evidence_chunks"}`` of a model ``net`` (its ``params``: LearnedParams) trained on
-    ``task``'s chunks ``chunk_x``, ``chunk_v`` (N, L, P, d).
+    ``task``'s chunks ``chunk_x``, ``chunk_v`` (N, L, P, d), recorded with observation noise ``noise`` (0: none).
 
     μ and e also carry what the learned model alone says of them (:mod:`diffcontact.train.identify`), per slot:
-    ``std_error`` (None: the data do not fix it), ``identified`` (a 95 % interval within ± 0.01) and
+    ``std_error`` (None: the data do not fix it), ``bootstrap_error`` (on noisy data: the bias and spread of a refit
+    at that noise; None without noise), ``identified`` (a 95 % interval within ± 0.01) and
     ``max_abs_error_identified`` (against the truth, over the slots so marked); ``evidence_chunks``: the training
     chunks with a collision of each slot under the learned model.
 
@@ -146,11 +147,12 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor) -> 
         "e": compare(learned.e.detach().double(), truth.e.double(), seen_e),
         "mass_ratio": compare(m_learned / m_learned[0], m_true / m_true[0]),
     }
-    found = evidence(net, chunk_x, chunk_v)  # (judged from the learned model alone: train/identify.py)
+    found = evidence(net, chunk_x, chunk_v, noise=noise)  # (judged from the learned model alone: train/identify.py)
     per_slot = [0] * n_slots if learned.homogeneous else list(range(n_slots))
     for key in ("mu", "e"):
-        se, ok = (found[key][k] for k in ("std_error", "identified"))
+        se, boot, ok = (found[key][k] for k in ("std_error", "bootstrap_error", "identified"))
         out[key]["std_error"] = [se[c] for c in per_slot]
+        out[key]["bootstrap_error"] = [boot[c] for c in per_slot]
         out[key]["identified"] = [ok[c] for c in per_slot]
         err = [abs(a - b) for a, b, c in zip(out[key]["learned"], out[key]["true"], per_slot) if ok[c]]
         out[key]["max_abs_error_identified"] = max(err) if err else None
