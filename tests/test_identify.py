@@ -134,3 +134,4 @@ def test_the_bootstrap_marks_a_restitution_biased_by_noisy_first_states_as_not_i
     assert float(net.params.e_raw.detach()) == pytest.approx(0.2988, abs=1e-4)
     assert ev["e"]["std_error"][0] < 0.005 and ev["e"]["bootstrap_error"][0] > 0.05
     assert ev["e"]["identified"] == [False]
+    assert ev["mu"] == {"std_error": [None], "bootstrap_error": [None], "identified": [False]}  # (nothing moves μ)

@@ -166,8 +166,8 @@ def evidence(
     """Per contact coefficient of the model ``net`` (a ContactModelNet with LearnedParams) on its training chunks
     chunk_x, chunk_v (N, L, P, d), recorded with observation noise ``noise`` (m, m/s; 0: none recorded):
     ``{"chunks": [...], "mu": {"std_error", "bootstrap_error", "identified"}, "e": {...}}``, lists of one entry per
-    coefficient (one on a homogeneous task); a standard error is None where infinite, a bootstrap error None
-    without noise (see the module docstring)."""
+    coefficient (one on a homogeneous task); a standard error is None where infinite, a bootstrap error None there
+    and without noise (see the module docstring)."""
     net = copy.deepcopy(net).double()  # (float64, whatever the training's dtype)
     sim, learned = net.simulator, net.params
     x, v = chunk_x.detach().double(), chunk_v.detach().double()
@@ -189,7 +189,9 @@ def evidence(
         for key, value, spread in zip(("mu", "e"), se, boot):
             # (3 digits: what a standard error means; the finite differences vary in the 8th with the thread count)
             out[key]["std_error"].append(float(f"{value:.3g}") if math.isfinite(value) else None)
-            out[key]["bootstrap_error"].append(None if spread is None else float(f"{spread:.3g}"))
+            # (a property the data do not fix has no bootstrap either: its refits cannot move it)
+            fixed = spread is not None and math.isfinite(value)
+            out[key]["bootstrap_error"].append(float(f"{spread:.3g}") if fixed else None)
             out[key]["identified"].append(bool(value <= tolerance / 2 and (spread is None or spread <= tolerance / 2)))
     return out
 
