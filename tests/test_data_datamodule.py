@@ -23,8 +23,8 @@ def root(tmp_path_factory):
 def test_chunk_pair_and_trajectory_datasets(root):
     split = load_split(root / TASK, "train")
     chunks = ChunkDataset(split)
-    x, v, t, cld = chunks[3]
-    assert len(chunks) == 10 and x.shape == (5, 5, 2) and v.shape == (5, 5, 2) and cld.dtype == torch.bool
+    x, v, t, cld, index = chunks[3]
+    assert index == 3 and len(chunks) == 10 and x.shape == (5, 5, 2) and v.shape == (5, 5, 2) and cld.dtype == torch.bool
     assert torch.allclose(t, torch.arange(5, dtype=torch.float64) * split.dt)
     s = int(split.chunk_start[3])
     assert torch.equal(x, split.x[3, s : s + 5]) and bool(cld) == bool(split.contact[3, s : s + 5].any())
@@ -42,8 +42,9 @@ def test_chunk_pair_and_trajectory_datasets(root):
 def test_datamodule_serves_float32_batches_deterministically(root):
     dm = ContactDataModule(TASK, root, batch_size=4, seed=5)
     dm.setup("fit")
-    x, v, t, cld = next(iter(dm.train_dataloader()))
+    x, v, t, cld, index = next(iter(dm.train_dataloader()))
     assert x.shape == (4, 5, 5, 2) and x.dtype == torch.float32 and t.shape == (4, 5) and cld.shape == (4,)
+    assert torch.equal(x, dm.splits["train"].chunk_x[index])  # (each chunk's index in the split)
     again = ContactDataModule(TASK, root, batch_size=4, seed=5)
     assert torch.equal(next(iter(again.train_dataloader()))[0], x)
     assert sum(b[0].shape[0] for b in dm.val_dataloader()) == 4 and len(dm.test_dataloader().dataset) == 4

@@ -370,6 +370,8 @@ def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data
     generate_dataset("BP1", noisy, n_train=16, n_val=4, n_test=4, noise=0.05, progress=False)
     assert stop_patience(noisy / "BP1") == run_module.NOISY_PATIENCE and stop_patience(data_root / "BP1") is None
     monkeypatch.setattr(run_module, "NOISY_PATIENCE", 2)
+    # (first states held: a validation step moves its chunks' learned first states, which lowers the loss it reports)
+    monkeypatch.setattr(run_module, "FIRST_STATE_LR", 0.0)
     run = tmp_path / "run"
     learned = train_run("BP1", epochs=40, out=run, data_root=noisy, batch_size=8, progress=False)
     with open(next((run / "logs" / "csv").rglob("metrics.csv"))) as fh:
@@ -382,3 +384,17 @@ def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data
     assert "early_stop" not in clean
     # the marking takes the recorded noise into account (a parametric bootstrap, train/identify.py); clean data: none
     assert all(b is not None for b in learned["e"]["bootstrap_error"]) and set(clean["e"]["bootstrap_error"]) == {None}
+    # every chunk's first state is learned on noisy data, training and validation chunks, at 0.1 × the noise a step
+    monkeypatch.setattr(run_module, "FIRST_STATE_LR", 0.1)
+    learned = train_run("BP1", epochs=3, out=tmp_path / "first", data_root=noisy, batch_size=8, progress=False)
+    args = json.loads((tmp_path / "first" / "config.json").read_text())["args"]
+    assert (args["first_state_chunks"], args["first_state_val_chunks"]) == (16, 4)
+    assert args["first_state_lr"] == pytest.approx(0.005)
+    state = torch.load(tmp_path / "first" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    assert state["first_train.steps"].tolist() == [3] * 16  # (each chunk moved once an epoch, in its batch)
+    assert 0 < float(state["first_train.dx"].abs().max()) <= 0.005 * 3
+    assert float(state["first_val.dx"].abs().max()) > 0
+    clean_args = json.loads((tmp_path / "clean" / "config.json").read_text())["args"]
+    assert clean_args["first_state_chunks"] == clean_args["first_state_val_chunks"] == 0
+    with pytest.raises(ConfigError, match=r"devices × num_nodes = 2: a run that learns its chunks' first states"):
+        TrainConfig(task="BP1", first_state_chunks=16, devices=2)

@@ -10,7 +10,7 @@ from diffcontact.data.store import Split
 
 class ChunkDataset(Dataset):
     """The split's chunks, one per trajectory. Item i: x, v (L, P, d), t (L,) in s from the chunk start,
-    collision () bool (the chunk contains a collision frame)."""
+    collision () bool (the chunk contains a collision frame), i () (the chunk's index in the split)."""
 
     def __init__(self, split: Split):
         self.x, self.v, self.collision = split.chunk_x, split.chunk_v, split.chunk_collision
@@ -19,8 +19,8 @@ class ChunkDataset(Dataset):
     def __len__(self) -> int:
         return int(self.x.shape[0])
 
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        return self.x[i], self.v[i], self.t, self.collision[i]
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int]:
+        return self.x[i], self.v[i], self.t, self.collision[i], i
 
 
 class PairDataset(Dataset):

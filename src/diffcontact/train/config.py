@@ -59,6 +59,11 @@ class TrainConfig:
     hidden: int = 256  # the learned networks' width and depth (the paper's 256 × 3)
     layers: int = 3
     dtype: str = "float32"
+    # the training and validation chunks whose first states are learned with the model (0: none), and the largest
+    # move of one in a step, in m (or m/s): set from the dataset's recorded noise (``train.run.first_state_settings``)
+    first_state_chunks: int = 0
+    first_state_val_chunks: int = 0
+    first_state_lr: float = 0.0
     data_root: str = "data"
     task_training: dict = field(default_factory=dict)
     devices: int = 1
@@ -76,13 +81,13 @@ class TrainConfig:
         _one_of("potential", self.potential, POTENTIALS)
         _one_of("coef_start", self.coef_start, COEF_STARTS)
         _one_of("dtype", self.dtype, DTYPES)
-        for key in ("seed", "min_steps"):
+        for key in ("seed", "min_steps", "first_state_chunks", "first_state_val_chunks"):
             _integer(key, getattr(self, key), 0)
         for key in ("epochs", "batch_size", "hidden", "layers", "devices", "num_nodes"):
             _integer(key, getattr(self, key), 1)
         for key in ("lr", "coef_lr", "moments_init", "axis_scale"):
             _number(key, getattr(self, key), positive=True)
-        for key in ("weight_decay", "mu_l1", "velocity_weight"):
+        for key in ("weight_decay", "mu_l1", "velocity_weight", "first_state_lr"):
             _number(key, getattr(self, key), positive=False)
         if self.mu_coef_lr is not None:
             _number("mu_coef_lr", self.mu_coef_lr, positive=True)
@@ -93,6 +98,11 @@ class TrainConfig:
                 raise ConfigError(f"reg = {self.reg:g} is for the regularised models (CMr-...), not {self.model}")
             if regularised and self.reg == 0:
                 raise ConfigError(f"reg = 0 is not > 0 for {self.model} (the exact model is CM-...)")
+        if self.first_state_chunks and self.devices * self.num_nodes > 1:
+            raise ConfigError(
+                f"devices × num_nodes = {self.devices * self.num_nodes}: a run that learns its chunks' first states "
+                "(data recorded with observation noise) trains on one process"
+            )
         if not isinstance(self.data_root, str) or not isinstance(self.task_training, dict):
             raise ConfigError(f"data_root = {self.data_root!r} must be a path and task_training a table")
 
@@ -192,7 +202,8 @@ RUN_ONLY = ("preset", "epochs", "batch_size", "min_steps", "coef_start", "data_r
 # Settings added after runs were made, and the value those runs trained with (for resuming them).
 LATER_SETTINGS = dict(
     train_loss="l1", devices=1, num_nodes=1, mu_l1=0.0, potential="mlp", velocity_weight=1.0, moments_init=1.0,
-    axis_scale=1.0, min_steps=0, coef_start="random", hidden=256, layers=3, task_training={},
+    axis_scale=1.0, min_steps=0, coef_start="random", hidden=256, layers=3, task_training={}, first_state_chunks=0,
+    first_state_val_chunks=0, first_state_lr=0.0,
 )  # fmt: skip
 
 

@@ -6,6 +6,12 @@ entirely (no update, no weight decay, no moment update) and counted; so is a ste
 non-finite state (a diverging learned model), with a warning.  Logged per epoch: losses, learned μ and e (summary),
 learned mass ratios, skipped steps and contact-solver failures.
 
+On data recorded with observation noise (``first_state_chunks`` > 0), the first state of every training and
+validation chunk is learned with the model (:mod:`diffcontact.train.first_states`): a training batch moves its
+chunks' first states with the model's step, a validation batch its chunks' first states alone (one step, the model
+fixed), so that the validation loss, which chooses the checkpoint and stops the run, is the same loss as the
+training's, least over the first states.
+
 On several processes (DDP) gradients are averaged over them, so a step is skipped on all or none: a process whose
 forward pass failed contributes NaN gradients.  Skipped steps are therefore the same on every process; forward and
 solver failures are each process's own and are summed over the processes (``totals``).
@@ -29,6 +35,7 @@ from diffcontact.solver import ContactSolver, Status
 from diffcontact.solver.status import is_failure
 from diffcontact.systems.registry import build_task
 from diffcontact.train.config import TrainConfig
+from diffcontact.train.first_states import FirstStates
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +108,12 @@ class ContactLightningModule(pl.LightningModule):
         self._point_scale = torch.where(axis, float(c.axis_scale), 1.0)
         self.baseline = model in BASELINE_NAMES
         self.learns_contacts = self.learned is not None and self.learned.n_slots > 0  # (μ and e)
+        self.first_states: dict[str, FirstStates] = {}
+        if c.first_state_chunks:  # (the chunks' first states, learned: see the module docstring)
+            d, dtype = self.task.system.d, getattr(torch, c.dtype)
+            self.first_train = FirstStates(c.first_state_chunks, n_points, d, dtype)
+            self.first_val = FirstStates(c.first_state_val_chunks, n_points, d, dtype)
+            self.first_states = {"train": self.first_train, "val": self.first_val}
 
     @property
     def learned(self) -> LearnedParams | None:
@@ -153,15 +166,17 @@ class ContactLightningModule(pl.LightningModule):
             solver_failures_by_status=by_status,
         )
 
-    def loss(self, batch, kind: str | None = None) -> torch.Tensor:
+    def loss(self, batch, kind: str | None = None, first: tuple | None = None) -> torch.Tensor:
         """Mean absolute (``kind`` "l1") or squared ("mse") error of the predicted chunk: x, v (B, L, P, d); a
         baseline's one-step pair (x0, v0, x1, v1, ...) is the chunk of its two frames.  ``kind`` None: the
-        ``train_loss`` in training mode, L1 otherwise (validation)."""
+        ``train_loss`` in training mode, L1 otherwise (validation).  ``first``: corrections dx, dv (B, P, d) of the
+        chunks' first frames (learned first states), or None."""
         kind = kind or (self.config.train_loss if self.training else "l1")
         x, v = batch[0], batch[1]
         if self.baseline:
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
-        px, pv = self.net(x[:, 0], v[:, 0], x.shape[1])
+        x0, v0 = (x[:, 0], v[:, 0]) if first is None else (x[:, 0] + first[0], v[:, 0] + first[1])
+        px, pv = self.net(x0, v0, x.shape[1])
         err = (lambda r: r.abs()) if kind == "l1" else torch.square
         w = self.config.velocity_weight
         scale = self._point_scale.to(x)[:, None]  # (P, 1): 1 at each body's centre, axis_scale at its axis points
@@ -172,10 +187,30 @@ class ContactLightningModule(pl.LightningModule):
             loss = loss + self.config.mu_l1 * self._params.mu.sum()
         return loss
 
+    def as_fitted(self, split: str, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The chunks x, v (N, L, P, d) of ``split`` ("train" or "val"), all of them in order, as the model is fitted
+        to them: their first frames corrected by the learned first states where the run learns them."""
+        states = self.first_states.get(split)
+        return (x, v) if states is None else states.corrected(x, v)
+
+    def _first(self, batch, split: str) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The learned first-state corrections of a chunk batch of ``split`` (leaves), or None."""
+        states = self.first_states.get(split)
+        return None if states is None or len(batch) != 5 else states.take(batch[4])
+
+    def _move_first(self, batch, split: str, first, grads) -> None:
+        """One step of the first states ``first`` of a chunk batch of ``split`` along ``grads``, at the schedule's
+        share of ``first_state_lr``; none where a gradient is not finite."""
+        if first is None or any(g is None or not bool(torch.isfinite(g).all()) for g in grads):
+            return
+        share = self._optimizer().param_groups[0]["lr"] / self.config.lr  # (the schedule's decay so far)
+        self.first_states[split].update(batch[4], grads[0], grads[1], self.config.first_state_lr * share)
+
     def training_step(self, batch, batch_idx: int):
         opt = self._optimizer()
+        first = self._first(batch, "train")
         try:
-            loss = self.loss(batch)
+            loss = self.loss(batch, first=first)
             failed = None
         except FloatingPointError as err:  # (a non-finite state in the forward pass: this step is skipped)
             self.forward_failures += 1
@@ -189,6 +224,8 @@ class ContactLightningModule(pl.LightningModule):
             opt.step()
             if self.learns_contacts:
                 self._params.project_()
+            if first is not None:
+                self._move_first(batch, "train", first, [t.grad for t in first])
         else:  # skipped entirely: no update, no weight decay
             self.skipped_steps += 1
             opt.zero_grad()
@@ -201,8 +238,16 @@ class ContactLightningModule(pl.LightningModule):
         return loss.detach()
 
     def validation_step(self, batch, batch_idx: int):
+        first = self._first(batch, "val")
         try:
-            loss = self.loss(batch)
+            if first is None:
+                loss = self.loss(batch)
+            else:  # (its first states move one step along their own gradient; the model is fixed)
+                with torch.enable_grad():
+                    loss = self.loss(batch, first=first)
+                    grads = torch.autograd.grad(loss, first, allow_unused=True)
+                self._move_first(batch, "val", first, grads)
+                loss = loss.detach()
         except FloatingPointError as err:  # (a diverging model: the worst loss, not a crash)
             self.forward_failures += 1
             log.warning(

@@ -18,6 +18,7 @@ from lightning.pytorch.strategies import DDPStrategy
 from lightning.pytorch.utilities import rank_zero_info
 
 from diffcontact.config import load_task
+from diffcontact.data.noise import noise_kind
 from diffcontact.data.store import load_meta
 from diffcontact.errors import ConfigError
 from diffcontact.files import TMP_PREFIX, atomic_write, save_figure, versions, write_json
@@ -25,6 +26,7 @@ from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.run_dir import RunDir
 from diffcontact.solver.contact_solver import load_failed, save_failed
+from diffcontact.systems.registry import build_task
 from diffcontact.train.coef_start import scan_coefficients
 from diffcontact.train.config import TrainConfig
 from diffcontact.train.datamodule import ContactDataModule
@@ -145,6 +147,9 @@ class _ShuffleState(pl.Callback):
 # the epochs (docs/training.md, "When a run stops").  On clean data the loss improves to the last epochs of the
 # schedule, and a run trains all its epochs.
 NOISY_PATIENCE = 30
+# On such data the first state of every training chunk is learned with the model (a contact model on free points:
+# ``first_state_settings``), at this fraction of the recorded noise a step.
+FIRST_STATE_LR = 0.1
 ACCELERATORS = ("cpu",)  # (the physics path keeps its constant tensors on the CPU: docs/scaling.md, GPUs)
 
 
@@ -263,6 +268,8 @@ def train_run(
     with output_lock(run.path) if first else nullcontext():  # (one command at a time writes a run)
         config, done = _settings(run, task, model, preset, epochs, given, resume)
         data = _data(config)
+        if not done:  # (a new run: its first states learned or not, from what the dataset records)
+            config = config.replace(**first_state_settings(config, data))
         max_epochs = planned_epochs(config.epochs, config.min_steps, data.batches_per_epoch(config.processes))
         if resume and max_epochs < done:
             raise ConfigError(
@@ -336,20 +343,20 @@ def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, process
         best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
     # (the best checkpoint is in this run's folder, also when the folder was moved: _RunCheckpoint)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
-    splits = data.splits["train"], data.splits["val"]
-    noise = recorded_noise(data.folder)
-    refined, best = _refined(chosen, *splits, best, run.checkpoints, noise, write=trainer.is_global_zero)
-    summary = _summary(chosen, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
+    train, noise = training_chunks(chosen, data.splits["train"]), recorded_noise(data.folder)
+    val, write = data.splits["val"], trainer.is_global_zero
+    refined, best = _refined(chosen, train, val, best, run.checkpoints, noise, write=write)
+    summary = _summary(chosen, train, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
     return summary | ({"refinement": refined} if refined else {})
 
 
 def _refined(
     chosen: ContactLightningModule, train, val, best: str, folder: Path, noise: float, write: bool
 ) -> tuple[dict, str]:
-    """The chosen checkpoint's μ and e refined by Gauss–Newton on the ``train`` split's chunks, recorded with
-    observation noise ``noise`` (``identify.refine``), kept if the loss on the ``val`` split's does not rise, and
-    saved as ``folder``/refined-NAME (``write``: this process writes it).  Returns the refinement's record ({} for
-    a model without learned contacts) and the checkpoint to use."""
+    """The chosen checkpoint's μ and e refined by Gauss–Newton on the training chunks ``train`` (chunk_x, chunk_v:
+    :func:`training_chunks`), recorded with observation noise ``noise`` (``identify.refine``), kept if the loss on
+    the ``val`` split's chunks does not rise, and saved as ``folder``/refined-NAME (``write``: this process writes
+    it).  Returns the refinement's record ({} for a model without learned contacts) and the checkpoint to use."""
     learned = chosen.learned
     if not chosen.learns_contacts or not best or learned is None:
         return {}, best
@@ -357,10 +364,10 @@ def _refined(
 
     def val_loss() -> float:
         with torch.no_grad():
-            return float(chosen.loss((val.chunk_x, val.chunk_v)))
+            return float(chosen.loss(chosen.as_fitted("val", val.chunk_x, val.chunk_v)))
 
     started, before = time.perf_counter(), val_loss()
-    record = refine(chosen.net, train.chunk_x, train.chunk_v, noise=noise)
+    record = refine(chosen.net, *train, noise=noise)
     after = val_loss() if record["iterations"] else before
     record |= {"val_loss_before": before, "val_loss_after": after}
     if not after <= before:  # (worse on the validation split: the checkpoint as trained)
@@ -429,6 +436,26 @@ def recorded_noise(folder: str | Path) -> float:
     return float(load_meta(folder)["request"].get("noise") or 0.0)
 
 
+def first_state_settings(config: TrainConfig, data: ContactDataModule) -> dict:
+    """``first_state_chunks`` and ``first_state_lr`` of a run of ``config`` on ``data``: every training chunk's
+    first state learned, at ``FIRST_STATE_LR`` × the noise a step, where the dataset records observation noise, the
+    model is a contact model and the system's points are free (no equality constraints, noise in Cartesian
+    coordinates: balls, the rope); none otherwise (docs/training.md, "Noise")."""
+    noise = recorded_noise(data.folder)
+    free = noise_kind(build_task(config.task).system) == "free"
+    if not noise or config.model not in MODEL_NAMES or not free:
+        return {"first_state_chunks": 0, "first_state_val_chunks": 0, "first_state_lr": 0.0}
+    data.setup()
+    train, val = (len(data.splits[name].chunk_x) for name in ("train", "val"))
+    return {"first_state_chunks": train, "first_state_val_chunks": val, "first_state_lr": FIRST_STATE_LR * noise}
+
+
+def training_chunks(chosen: ContactLightningModule, split) -> tuple[torch.Tensor, torch.Tensor]:
+    """The training chunks x, v (N, L, P, d) of ``split`` as the model ``chosen`` was fitted to them: their first
+    frames the learned first states where it learned them (``first_state_chunks``), else as recorded."""
+    return chosen.as_fitted("train", split.chunk_x, split.chunk_v)
+
+
 def _trainer(
     run: RunDir,
     config: TrainConfig,
@@ -472,6 +499,7 @@ def _trainer(
         log_every_n_steps=1,
         enable_model_summary=False,
         num_sanity_val_steps=0 if start else 2,  # (as the uninterrupted run: its counters include it once)
+        inference_mode=False,  # (no_grad: a validation step may move its chunks' learned first states)
         accelerator=accelerator,
         devices=config.devices,
         num_nodes=config.num_nodes,
@@ -490,11 +518,12 @@ def _scan_start(module: ContactLightningModule, data: ContactDataModule, config:
         write_json(run.coef_start, record)
 
 
-def _summary(chosen: ContactLightningModule, data: ContactDataModule, run: RunDir) -> dict:
+def _summary(
+    chosen: ContactLightningModule, train: tuple[torch.Tensor, torch.Tensor], data: ContactDataModule, run: RunDir
+) -> dict:
     """What the checkpoint chosen on the validation split learned, and what the training data can identify; a
     measured dataset's table height; where μ and e started."""
-    train = data.splits["train"]
-    summary = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v, recorded_noise(data.folder))
+    summary = learned_summary(chosen.net, chosen.task, *train, recorded_noise(data.folder))
     request = load_meta(data.folder)["request"]
     if request.get("measured"):  # (the table's height is the importer's estimate, not learned)
         summary["table_height_m"] = {"value": request["table_height_m"], "how": request["table_height_method"]}
@@ -521,13 +550,14 @@ def summarize_run(run: str | Path) -> dict:
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
     config = chosen.task.config
     dtype, folder = getattr(torch, args.get("dtype", "float32")), dataset_folder(args["data_root"], config.name)
-    train, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
+    train_split, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
+    train = training_chunks(chosen, train_split)
     refined = {}
     if "refinement" not in old:  # (a run trained before the refinement: refined now, as training does)
         refined, old["best_checkpoint"] = _refined(
             chosen, train, val, str(best), run_dir.checkpoints, recorded_noise(folder), write=True
         )
-    fresh = learned_summary(chosen.net, chosen.task, train.chunk_x, train.chunk_v, recorded_noise(folder))
+    fresh = learned_summary(chosen.net, chosen.task, *train, recorded_noise(folder))
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
     summary = {**fresh, **kept} | ({"refinement": refined} if refined else {})
     write_json(run_dir.learned, summary)
