@@ -24,7 +24,7 @@ def test_chunk_pair_and_trajectory_datasets(root):
     split = load_split(root / TASK, "train")
     chunks = ChunkDataset(split)
     x, v, t, cld, index = chunks[3]
-    assert index == 3 and len(chunks) == 10 and x.shape == (5, 5, 2) and v.shape == (5, 5, 2) and cld.dtype == torch.bool
+    assert index == 3 and len(chunks) == 10 and x.shape == v.shape == (5, 5, 2) and cld.dtype == torch.bool
     assert torch.allclose(t, torch.arange(5, dtype=torch.float64) * split.dt)
     s = int(split.chunk_start[3])
     assert torch.equal(x, split.x[3, s : s + 5]) and bool(cld) == bool(split.contact[3, s : s + 5].any())

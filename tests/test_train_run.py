@@ -368,9 +368,11 @@ def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data
 
     noisy = tmp_path / "noisy"
     generate_dataset("BP1", noisy, n_train=16, n_val=4, n_test=4, noise=0.05, progress=False)
-    assert stop_patience(noisy / "BP1") == run_module.NOISY_PATIENCE and stop_patience(data_root / "BP1") is None
+    plain, first = TrainConfig(task="BP1"), TrainConfig(task="BP1", first_state_chunks=16, first_state_lr=0.005)
+    assert stop_patience(noisy / "BP1", plain) == run_module.NOISY_PATIENCE
+    assert stop_patience(data_root / "BP1", plain) is None and stop_patience(noisy / "BP1", first) is None
     monkeypatch.setattr(run_module, "NOISY_PATIENCE", 2)
-    # (first states held: a validation step moves its chunks' learned first states, which lowers the loss it reports)
+    # (first states not learned: a run that learns them trains all its epochs)
     monkeypatch.setattr(run_module, "FIRST_STATE_LR", 0.0)
     run = tmp_path / "run"
     learned = train_run("BP1", epochs=40, out=run, data_root=noisy, batch_size=8, progress=False)
@@ -394,6 +396,7 @@ def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data
     assert state["first_train.steps"].tolist() == [3] * 16  # (each chunk moved once an epoch, in its batch)
     assert 0 < float(state["first_train.dx"].abs().max()) <= 0.005 * 3
     assert float(state["first_val.dx"].abs().max()) > 0
+    assert "early_stop" not in learned and learned["epochs_trained"] == 3
     clean_args = json.loads((tmp_path / "clean" / "config.json").read_text())["args"]
     assert clean_args["first_state_chunks"] == clean_args["first_state_val_chunks"] == 0
     with pytest.raises(ConfigError, match=r"devices × num_nodes = 2: a run that learns its chunks' first states"):
