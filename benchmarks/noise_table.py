@@ -25,7 +25,8 @@ MODELS = ("CM-CD-CLNN", "CMr-CD-CLNN")
 
 
 def rows(out: Path) -> list[str]:
-    noise = next(json.loads(m.read_text())["request"]["noise"] for m in sorted(out.glob("data/*/meta.json")))
+    record = json.loads((out / "reproduce.json").read_text())  # (the noise, and the datasets' root if not OUT/data)
+    noise = float(record["noise"])
     lines = []
     for task in HOMOGENEOUS:
         for model in MODELS:
