@@ -210,7 +210,7 @@ class ContactLightningModule(pl.LightningModule):
         opt = self._optimizer()
         first = self._first(batch, "train")
         try:
-            loss = self.loss(batch, first=first)
+            loss = self.loss(batch) if first is None else self.loss(batch, first=first)
             failed = None
         except FloatingPointError as err:  # (a non-finite state in the forward pass: this step is skipped)
             self.forward_failures += 1
