@@ -346,7 +346,8 @@ def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, process
         best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
     # (the best checkpoint is in this run's folder, also when the folder was moved: _RunCheckpoint)
     chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
-    train, noise = training_chunks(chosen, data.splits["train"]), recorded_noise(data.folder)
+    split, noise = data.splits["train"], recorded_noise(data.folder)
+    train = chosen.as_fitted("train", split.chunk_x, split.chunk_v)
     val, write = data.splits["val"], trainer.is_global_zero
     refined, best = _refined(chosen, train, val, best, run.checkpoints, noise, write=write)
     summary = _summary(chosen, train, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
@@ -356,10 +357,11 @@ def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, process
 def _refined(
     chosen: ContactLightningModule, train, val, best: str, folder: Path, noise: float, write: bool
 ) -> tuple[dict, str]:
-    """The chosen checkpoint's μ and e refined by Gauss–Newton on the training chunks ``train`` (chunk_x, chunk_v:
-    :func:`training_chunks`), recorded with observation noise ``noise`` (``identify.refine``), kept if the loss on
-    the ``val`` split's chunks does not rise, and saved as ``folder``/refined-NAME (``write``: this process writes
-    it).  Returns the refinement's record ({} for a model without learned contacts) and the checkpoint to use."""
+    """The chosen checkpoint's μ and e refined by Gauss–Newton on the training chunks ``train`` (chunk_x, chunk_v,
+    as fitted: ``ContactLightningModule.as_fitted``), recorded with observation noise ``noise``
+    (``identify.refine``), kept if the loss on the ``val`` split's chunks does not rise, and saved as
+    ``folder``/refined-NAME (``write``: this process writes it).  Returns the refinement's record ({} for a model
+    without learned contacts) and the checkpoint to use."""
     learned = chosen.learned
     if not chosen.learns_contacts or not best or learned is None:
         return {}, best
@@ -452,12 +454,6 @@ def first_state_settings(config: TrainConfig, data: ContactDataModule) -> dict:
     data.setup()
     train, val = (len(data.splits[name].chunk_x) for name in ("train", "val"))
     return {"first_state_chunks": train, "first_state_val_chunks": val, "first_state_lr": FIRST_STATE_LR * noise}
-
-
-def training_chunks(chosen: ContactLightningModule, split) -> tuple[torch.Tensor, torch.Tensor]:
-    """The training chunks x, v (N, L, P, d) of ``split`` as the model ``chosen`` was fitted to them: their first
-    frames the learned first states where it learned them (``first_state_chunks``), else as recorded."""
-    return chosen.as_fitted("train", split.chunk_x, split.chunk_v)
 
 
 def _trainer(
@@ -555,7 +551,7 @@ def summarize_run(run: str | Path) -> dict:
     config = chosen.task.config
     dtype, folder = getattr(torch, args.get("dtype", "float32")), dataset_folder(args["data_root"], config.name)
     train_split, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
-    train = training_chunks(chosen, train_split)
+    train = chosen.as_fitted("train", train_split.chunk_x, train_split.chunk_v)
     refined = {}
     if "refinement" not in old:  # (a run trained before the refinement: refined now, as training does)
         refined, old["best_checkpoint"] = _refined(
