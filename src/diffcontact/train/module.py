@@ -200,8 +200,12 @@ class ContactLightningModule(pl.LightningModule):
 
     def _move_first(self, batch, split: str, first, grads) -> None:
         """One step of the first states ``first`` of a chunk batch of ``split`` along ``grads``, at the schedule's
-        share of ``first_state_lr``; none where a gradient is not finite."""
-        if first is None or any(g is None or not bool(torch.isfinite(g).all()) for g in grads):
+        share of ``first_state_lr``; none, with a warning, where a gradient is not finite."""
+        if first is None:
+            return
+        if any(g is None or not bool(torch.isfinite(g).all()) for g in grads):
+            log.warning("epoch %d: the %s chunks' first states of a batch kept: a gradient is not finite",
+                        self.current_epoch, split)  # fmt: skip
             return
         share = self._optimizer().param_groups[0]["lr"] / self.config.lr  # (the schedule's decay so far)
         self.first_states[split].update(batch[4], grads[0], grads[1], self.config.first_state_lr * share)
