@@ -155,18 +155,16 @@ static inline void update_row(V* rr, const V* const* prow, int m, int c0, int j0
   }
 }
 
-// Assemble the reduced matrix at (s, λ), eliminate the rays into S, then the LU factors of S: a factorisation
-// record in e.R2, with pivots in e.piv2.  use_weak: lanes whose weakly active cones and rays are
-// taken as inactive.  Returns the lanes where it is nonsingular (the rays' pivots and S's above 1e-13 of the
-// Frobenius norm of the reduced matrix).
+// The factorisation's first step: the reduced matrix at (s, λ) into f.S (row-major n × n), the cone rows'
+// coefficients into f.C, and each ray's row (a at dz_kD, b at dλ_l,k) as its pivot: the larger of the two (|d|,
+// 1/d in f.dinv, the other entry c in f.c, f.swp where a is the larger).  use_weak: lanes whose weakly active
+// cones and rays are taken as inactive.  Adds the squares of the rays' entries to sq_rays and keeps the least
+// |d| in dmin.
 template <int D>
-static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, const V* s_q, const V* lam_q,
-                M use_weak) {
-  const int K = e.K, n = e.n;
+static void assemble(Factors<D>& f, const Work<D>& w, int K, int n, const V* s_l, const V* lam_l, const V* s_q,
+                     const V* lam_q, M use_weak, V& sq_rays, V& dmin) {
   const V zero = splat(0.0), one = splat(1.0);
-  Factors<D> f(e.R2, K);
   V* R = f.S;
-  V sq_rays = zero, dmin = splat(__builtin_inf());
   for (int k = 0; k < K; k++) {
     M uq = w.on[k];
     M weak = uq & use_weak & weak_cone<D>(s_q + k * D, lam_q + k * D);
@@ -206,15 +204,26 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
     f.dinv[k] = 1.0 / sel(d != 0.0, d, one);
     dmin = vmin(dmin, vabs(d));
   }
-  V sq[4] = {sq_rays, zero, zero, zero};  // (four independent sums)
-  const i64 NN = (i64)n * n;
+}
+
+// The Frobenius norm of the reduced matrix: the rays' squares sq_rays and those of S (NN entries; four
+// independent sums).
+static inline V frobenius(const V* S, i64 NN, V sq_rays) {
+  const V zero = splat(0.0);
+  V sq[4] = {sq_rays, zero, zero, zero};
   i64 i4 = 0;
   for (; i4 + 3 < NN; i4 += 4)
-    for (int x = 0; x < 4; x++) sq[x] += R[i4 + x] * R[i4 + x];
-  for (; i4 < NN; i4++) sq[0] += R[i4] * R[i4];
-  V sc = vsqrt((sq[0] + sq[1]) + (sq[2] + sq[3]));
-  M ok = dmin > 1e-13 * sc;
-  for (int k = 0; k < K; k++) {  // the rays eliminated: column kD of A becomes that of S
+    for (int x = 0; x < 4; x++) sq[x] += S[i4 + x] * S[i4 + x];
+  for (; i4 < NN; i4++) sq[0] += S[i4] * S[i4];
+  return vsqrt((sq[0] + sq[1]) + (sq[2] + sq[3]));
+}
+
+// The rays eliminated: column kD of the reduced matrix becomes that of S (A's original column kept in f.colA).
+template <int D>
+static void eliminate_rays(Factors<D>& f, const Work<D>& w, int K, int n) {
+  const V zero = splat(0.0);
+  V* R = f.S;
+  for (int k = 0; k < K; k++) {
     const M sw = f.swp[k];
     const V g = f.c[k] * f.dinv[k];
     V* cA = f.colA + (i64)k * n;
@@ -228,13 +237,18 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       R[(i64)(k * D + i) * n + k * D] += sel(sw, cb, -(cb * g));
     }
   }
-  // LU with partial pivoting, per lane: reciprocal pivots on the diagonal.  Right-looking by panels of PANEL
-  // columns: the trailing rows are updated once per panel, not once per column (for large K the matrix does not
-  // fit in the L1 cache: a quarter of the traffic).  Every entry receives the same updates in the same order as
-  // one column at a time.
+}
+
+// LU with partial pivoting of S (N × N, row-major, in place), per lane: reciprocal pivots on the diagonal, the
+// pivot row of each step in piv.  Right-looking by panels of PANEL columns: the trailing rows are updated once per
+// panel, not once per column (for large K the matrix does not fit in the L1 cache: a quarter of the traffic).
+// Every entry receives the same updates in the same order as one column at a time.  Returns the lanes whose
+// pivots are all above 1e-13 · sc.
+static M lu_panels(V* S, M* piv, int N, V sc) {
   constexpr int PANEL = 8;
-  const int N = n;
-  auto row = [&](int r) { return R + (i64)r * N; };
+  const V one = splat(1.0);
+  M ok = M{} == 0;  // (all true)
+  auto row = [&](int r) { return S + (i64)r * N; };
   // pivot of column `col` among rows col … N − 1, its row swapped into place (whole rows, per lane, as selects:
   // one pass per distinct pivot row); returns the reciprocal pivot
   auto pivot = [&](int col) {
@@ -247,7 +261,7 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       p = gt ? (M{} + r) : p;
     }
     ok &= best > 1e-13 * sc;
-    e.piv2[col] = p;
+    piv[col] = p;
     for (M todo = p != col; any(todo);) {
       i64 pr = col;
       for (int l = 0; l < LANES; l++)
@@ -286,6 +300,23 @@ static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, con
       update_row(row(k), prow, k - c0, c0, pe, N);
     for (int r = pe; r < N; r++) update_row(row(r), prow, pe - c0, c0, pe, N);  // the trailing rows
   }
+  return ok;
+}
+
+// A factorisation record in e.R2, with pivots in e.piv2, at (s, λ): the reduced matrix assembled, its rays
+// eliminated into S, then S's LU factors.  use_weak: lanes whose weakly active cones and rays are taken as inactive.
+// Returns the lanes where it is nonsingular (the rays' pivots and S's above 1e-13 of the Frobenius norm of the
+// reduced matrix).
+template <int D>
+static M factor(Exact<D>& e, const Work<D>& w, const V* s_l, const V* lam_l, const V* s_q, const V* lam_q,
+                M use_weak) {
+  const int K = e.K, n = e.n;
+  Factors<D> f(e.R2, K);
+  V sq_rays = splat(0.0), dmin = splat(__builtin_inf());
+  assemble<D>(f, w, K, n, s_l, lam_l, s_q, lam_q, use_weak, sq_rays, dmin);
+  const V sc = frobenius(f.S, (i64)n * n, sq_rays);
+  eliminate_rays<D>(f, w, K, n);
+  const M ok = (dmin > 1e-13 * sc) & lu_panels(f.S, e.piv2, n, sc);
   *e.scale2 = sc;
   return ok;
 }
