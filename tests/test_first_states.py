@@ -4,6 +4,7 @@ the recorded first frames prefers e = 0."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from diffcontact.data.generate import make_split
@@ -11,6 +12,7 @@ from diffcontact.simulator import simulator_for
 from diffcontact.state import State
 from diffcontact.systems.registry import build_task
 from diffcontact.train.first_states import BETA, FirstStates
+from diffcontact.train.module import ContactLightningModule
 
 
 def test_a_step_moves_only_the_chunks_of_the_batch_by_rmsprop():
@@ -29,13 +31,39 @@ def test_a_step_moves_only_the_chunks_of_the_batch_by_rmsprop():
     expected = before - 0.01 * g2[0] / (square / (1 - BETA**2)).sqrt()
     assert torch.allclose(states.dx[3], expected) and states.steps.tolist() == [0, 1, 0, 2, 0]
     assert torch.allclose(states.dx[1], -0.01 * gx[0].sign())  # (chunk 1 not in the batch: unchanged)
-    # the leaves a batch takes, and every chunk with its first frame corrected
+    # the leaves a batch takes
     dx, dv = states.take(index)
     assert dx.requires_grad and torch.equal(dx.detach(), states.dx[index])
-    x = torch.randn(5, 4, 2, 3, dtype=torch.float64)
-    cx, cv = states.corrected(x, x)
-    assert torch.equal(cx[:, 0], x[:, 0] + states.dx) and torch.equal(cx[:, 1:], x[:, 1:])
-    assert torch.equal(cv[:, 0], x[:, 0] + states.dv)
+
+
+@pytest.mark.parametrize("task_name", ["BP5-e", "CP3", "Gyro"])
+def test_the_chunks_as_fitted_start_from_their_corrected_first_frames_on_the_constraints(task_name):
+    # free points: the recorded first frame plus the correction; a constrained system (the chain pendulum's
+    # distance constraints, the gyroscope's rigid body on its pivot): that, projected back onto the constraints
+    module = ContactLightningModule(task_name, dtype="float64", first_state_chunks=6, first_state_val_chunks=1)
+    task, generator = module.task, torch.Generator().manual_seed(0)
+    state = task.sample(6, seed=0)
+    x = torch.stack([state.x, state.x + 0.01], 1)  # (6, 2, P, d): chunks of two frames
+    v = torch.stack([state.v, state.v], 1)
+    states = module.first_states["train"]
+    states.dx.copy_(0.01 * torch.randn(states.dx.shape, generator=generator, dtype=torch.float64))
+    states.dv.copy_(0.01 * torch.randn(states.dv.shape, generator=generator, dtype=torch.float64))
+    fx, fv = module.as_fitted("train", x, v)
+    assert torch.equal(fx[:, 1:], x[:, 1:]) and torch.equal(fv[:, 1:], v[:, 1:])
+    constraints = task.system.constraints
+    if constraints.count == 0:
+        assert torch.equal(fx[:, 0], x[:, 0] + states.dx) and torch.equal(fv[:, 0], v[:, 0] + states.dv)
+        return
+    assert float(constraints.phi(fx[:, 0]).abs().max()) < 1e-11
+    J = constraints.jac(fx[:, 0])
+    assert float((J @ fv[:, 0].reshape(6, -1, 1)).abs().max()) < 1e-12  # (velocities tangent)
+    moved = (fx[:, 0] - x[:, 0]).abs().max()
+    assert 0 < moved < 0.1  # (a correction, not a jump to another branch)
+    # the projection is differentiable: the gradient the first states learn by agrees with finite differences
+    dx0, dv0 = states.dx[:1].clone().requires_grad_(True), states.dv[:1].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda a, b: module._started(x[:1, 0], v[:1, 0], a, b), (dx0, dv0), eps=1e-6, atol=1e-5
+    )
 
 
 def test_on_noisy_ball_data_the_loss_least_over_the_first_states_prefers_the_true_restitution():

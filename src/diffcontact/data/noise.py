@@ -63,19 +63,7 @@ def add_noise(
 
 
 def _project(cons, x, v):
-    B, P, d = x.shape
-    residual = float("nan")  # (max |Φ| of the last step's start)
-    for _ in range(_PROJECTION_STEPS):
-        phi = cons.phi(x)  # (B, E)
-        residual = float(phi.abs().max())
-        if residual < _PROJECTION_TOL:
-            break
-        J = cons.jac(x)  # (B, E, D)
-        step = J.transpose(1, 2) @ torch.linalg.solve(J @ J.transpose(1, 2), phi[..., None])
-        x = x - step.reshape(B, P, d)
-    else:
-        raise DatasetError(f"noise projection onto the constraints did not converge (|Φ| = {residual:.1e})")
-    J = cons.jac(x)
-    flat = v.reshape(B, P * d, 1)
-    flat = flat - J.transpose(1, 2) @ torch.linalg.solve(J @ J.transpose(1, 2), J @ flat)
-    return x, flat.reshape(B, P, d)
+    try:
+        return cons.project(x, v, _PROJECTION_TOL, _PROJECTION_STEPS)
+    except FloatingPointError as err:
+        raise DatasetError(f"noise {err}") from None

@@ -76,6 +76,29 @@ class Constraints:
         """J_E = ∂Φ/∂x: (B, P, d) -> (B, E, D)."""
         return self._pair_rows(x, x, None)
 
+    def project(
+        self, x: torch.Tensor, v: torch.Tensor, tol: float, steps: int = 50
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """x, v (B, P, d) moved onto the constraints: positions by Gauss–Newton steps of least norm until
+        max |Φ| < ``tol``, then velocities onto J_E v = 0 (the orthogonal projection).  Differentiable (autograd
+        follows the steps taken).  Raises FloatingPointError where ``steps`` steps do not reach ``tol``."""
+        B, P, d = x.shape
+        residual = float("nan")  # (max |Φ| of the last step's start)
+        for _ in range(steps):
+            phi = self.phi(x)  # (B, E)
+            residual = float(phi.detach().abs().max())
+            if residual < tol:
+                break
+            J = self.jac(x)  # (B, E, D)
+            step = J.transpose(1, 2) @ torch.linalg.solve(J @ J.transpose(1, 2), phi[..., None])
+            x = x - step.reshape(B, P, d)
+        else:
+            raise FloatingPointError(f"projection onto the constraints did not converge (|Φ| = {residual:.1e})")
+        J = self.jac(x)
+        flat = v.reshape(B, P * d, 1)
+        flat = flat - J.transpose(1, 2) @ torch.linalg.solve(J @ J.transpose(1, 2), J @ flat)
+        return x, flat.reshape(B, P, d)
+
     def jac_dot(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """∂(J_E v)/∂x (B, E, D); its product with v is the J̇_E v term of the constrained dynamics."""
         return self._pair_rows(x, v, 0.0)

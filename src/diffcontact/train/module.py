@@ -175,7 +175,7 @@ class ContactLightningModule(pl.LightningModule):
         x, v = batch[0], batch[1]
         if self.baseline:
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
-        x0, v0 = (x[:, 0], v[:, 0]) if first is None else (x[:, 0] + first[0], v[:, 0] + first[1])
+        x0, v0 = (x[:, 0], v[:, 0]) if first is None else self._started(x[:, 0], v[:, 0], *first)
         px, pv = self.net(x0, v0, x.shape[1])
         err = (lambda r: r.abs()) if kind == "l1" else torch.square
         w = self.config.velocity_weight
@@ -191,7 +191,22 @@ class ContactLightningModule(pl.LightningModule):
         """The chunks x, v (N, L, P, d) of ``split`` ("train" or "val"), all of them in order, as the model is fitted
         to them: their first frames corrected by the learned first states where the run learns them."""
         states = self.first_states.get(split)
-        return (x, v) if states is None else states.corrected(x, v)
+        if states is None:
+            return x, v
+        with torch.no_grad():
+            x0, v0 = self._started(x[:, 0], v[:, 0], states.dx.to(x), states.dv.to(v))
+        return torch.cat([x0[:, None], x[:, 1:]], 1), torch.cat([v0[:, None], v[:, 1:]], 1)
+
+    def _started(
+        self, x0: torch.Tensor, v0: torch.Tensor, dx: torch.Tensor, dv: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Recorded first frames x0, v0 (B, P, d) with their learned corrections dx, dv added, and moved back onto
+        the system's equality constraints where it has them (differentiable)."""
+        x, v = x0 + dx, v0 + dv
+        constraints = self.task.system.constraints
+        if constraints.count == 0:
+            return x, v
+        return constraints.project(x, v, tol=torch.finfo(x.dtype).eps ** 0.75)
 
     def _first(self, batch, split: str) -> tuple[torch.Tensor, torch.Tensor] | None:
         """The learned first-state corrections of a chunk batch of ``split`` (leaves), or None."""
