@@ -4,6 +4,8 @@ the recorded first frames prefers e = 0."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 
@@ -59,6 +61,13 @@ def test_the_chunks_as_fitted_start_from_their_corrected_first_frames_on_the_con
     assert float((J @ fv[:, 0].reshape(6, -1, 1)).abs().max()) < 1e-12  # (velocities tangent)
     moved = (fx[:, 0] - x[:, 0]).abs().max()
     assert 0 < moved < 0.1  # (a correction, not a jump to another branch)
+    # a step keeps the corrections as the moves they make: x0 + dx is on the constraints after it (RMSprop's
+    # per-coordinate step leaves the tangent space, and the part off it would pile up)
+    module._optimizer = lambda: SimpleNamespace(param_groups=[{"lr": module.config.lr}])
+    index = torch.arange(6)
+    grads = (torch.randn(x[:, 0].shape, generator=generator, dtype=torch.float64),) * 2
+    module._move_first((x, v, None, None, index), "train", states.take(index), grads)
+    assert float(constraints.phi(x[:, 0] + states.dx).abs().max()) < 1e-11
     # the projection is differentiable: the gradient the first states learn by agrees with finite differences
     dx0, dv0 = states.dx[:1].clone().requires_grad_(True), states.dv[:1].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(

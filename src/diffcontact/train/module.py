@@ -206,7 +206,7 @@ class ContactLightningModule(pl.LightningModule):
         constraints = self.task.system.constraints
         if constraints.count == 0:
             return x, v
-        return constraints.project(x, v, tol=torch.finfo(x.dtype).eps ** 0.75)
+        return constraints.project(x, v, tol=torch.finfo(x.dtype).eps ** 0.75, at_least=1)
 
     def _first(self, batch, split: str) -> tuple[torch.Tensor, torch.Tensor] | None:
         """The learned first-state corrections of a chunk batch of ``split`` (leaves), or None."""
@@ -223,7 +223,16 @@ class ContactLightningModule(pl.LightningModule):
                         self.current_epoch, split)  # fmt: skip
             return
         share = self._optimizer().param_groups[0]["lr"] / self.config.lr  # (the schedule's decay so far)
-        self.first_states[split].update(batch[4], grads[0], grads[1], self.config.first_state_lr * share)
+        states, index = self.first_states[split], batch[4]
+        states.update(index, grads[0], grads[1], self.config.first_state_lr * share)
+        if self.task.system.constraints.count:
+            # the corrections kept as the moves they make: RMSprop scales each coordinate by its own history, so its
+            # step leaves the constraints' tangent space, and a correction off it would pile up unseen (the
+            # projection removes it from the state, not from the correction)
+            with torch.no_grad():
+                x0, v0 = batch[0][:, 0], batch[1][:, 0]
+                x, v = self._started(x0, v0, states.dx[index].to(x0), states.dv[index].to(v0))
+                states.dx[index], states.dv[index] = (x - x0).to(states.dx), (v - v0).to(states.dv)
 
     def training_step(self, batch, batch_idx: int):
         opt = self._optimizer()
