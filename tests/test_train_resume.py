@@ -276,3 +276,17 @@ def test_a_checkpoint_of_another_model_is_refused(finished, data_root, tmp_path)
     assert other["epochs_trained"] == 1
     with pytest.raises(ConfigError, match=r"last.ckpt is of model 'CM-CD-CHNN', config.json records 'CM-CD-CLNN'"):
         train_run("BP1", out=run, resume=True, progress=False)
+
+
+def test_last_ckpt_is_the_last_epoch_when_the_validation_loss_stops_improving(data_root, tmp_path, monkeypatch):
+    # (Lightning writes last.ckpt only in a step that writes a best checkpoint: here only epoch 0 is the best)
+    loss = ContactLightningModule.loss
+
+    def worse_every_epoch(self, batch, *args, **kwargs):
+        return loss(self, batch, *args, **kwargs) + (0.0 if self.training else 10.0 * self.current_epoch)
+
+    monkeypatch.setattr(ContactLightningModule, "loss", worse_every_epoch)
+    run = tmp_path / "run"
+    train_run("BP1", out=run, progress=False, epochs=3, batch_size=8, data_root=data_root)
+    assert [p.name for p in sorted((run / "checkpoints").glob("best-*.ckpt"))] == ["best-epoch=0.ckpt"]
+    assert _state(run)["epoch"] == 2  # (the last epoch trained: a kill after it would lose nothing)

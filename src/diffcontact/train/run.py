@@ -81,7 +81,24 @@ def planned_epochs(epochs: int, min_steps: int, batches_per_epoch: int) -> int:
 
 class _RunCheckpoint(ModelCheckpoint):
     """ModelCheckpoint whose record of the best and last checkpoints follows its run directory when the run was
-    moved or copied (Lightning's would forget the best score and write last-v1.ckpt)."""
+    moved or copied (Lightning's would forget the best score and write last-v1.ckpt), and that writes last.ckpt at
+    the end of every validation: Lightning (2.6) writes it only when a best checkpoint is written in the same step, so
+    a run whose validation loss had stopped improving resumed from its best epoch, not its last."""
+
+    def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        super().on_train_epoch_end(trainer, pl_module)
+        if self._should_save_on_train_epoch_end(trainer):
+            self._save_last_too(trainer)
+
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        super().on_validation_end(trainer, pl_module)
+        if not self._should_save_on_train_epoch_end(trainer):
+            self._save_last_too(trainer)
+
+    def _save_last_too(self, trainer: pl.Trainer) -> None:
+        """last.ckpt, where Lightning's save of this step (the hook above, just run) did not write it."""
+        if self.save_last and not self._should_skip_saving_checkpoint(trainer):  # (skipped: written this step)
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
     @property
     def state_key(self) -> str:  # (Lightning's own name: the checkpoints of runs made before keep their state)
