@@ -77,19 +77,17 @@ class Constraints:
         return self._pair_rows(x, x, None)
 
     def project(
-        self, x: torch.Tensor, v: torch.Tensor, tol: float, steps: int = 50, at_least: int = 0
+        self, x: torch.Tensor, v: torch.Tensor, tol: float, steps: int = 50
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """x, v (B, P, d) moved onto the constraints: positions by Gauss–Newton steps of least norm until
-        max |Φ| < ``tol`` (and ``at_least`` steps), then velocities onto J_E v = 0 (the orthogonal projection).
-        Differentiable: autograd follows the steps taken, so a derivative needs ``at_least`` = 1 (one step from a
-        point on the constraints has the tangent projector as its Jacobian; no step, the identity).  Raises
-        FloatingPointError where ``steps`` steps do not reach ``tol``."""
+        max |Φ| < ``tol``, then velocities onto J_E v = 0 (the orthogonal projection).  Raises FloatingPointError
+        where ``steps`` steps do not reach ``tol``."""
         B, P, d = x.shape
         residual = float("nan")  # (max |Φ| of the last step's start)
-        for taken in range(steps):
+        for _ in range(steps):
             phi = self.phi(x)  # (B, E)
-            residual = float(phi.detach().abs().max())
-            if residual < tol and taken >= at_least:
+            residual = float(phi.abs().max())
+            if residual < tol:
                 break
             J = self.jac(x)  # (B, E, D)
             step = J.transpose(1, 2) @ torch.linalg.solve(J @ J.transpose(1, 2), phi[..., None])

@@ -54,3 +54,9 @@ class FirstStates(nn.Module):
         self.square[index], self.steps[index] = square, steps
         self.dx[index] -= move[:, 0]
         self.dv[index] -= move[:, 1]
+
+    def corrected(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every chunk x, v (n, L, P, d) of the split with its first frame corrected (no gradient)."""
+        with torch.no_grad():
+            x0, v0 = x[:, 0] + self.dx.to(x), v[:, 0] + self.dv.to(v)
+        return torch.cat([x0[:, None], x[:, 1:]], 1), torch.cat([v0[:, None], v[:, 1:]], 1)

@@ -175,7 +175,7 @@ class ContactLightningModule(pl.LightningModule):
         x, v = batch[0], batch[1]
         if self.baseline:
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
-        x0, v0 = (x[:, 0], v[:, 0]) if first is None else self._started(x[:, 0], v[:, 0], *first)
+        x0, v0 = (x[:, 0], v[:, 0]) if first is None else (x[:, 0] + first[0], v[:, 0] + first[1])
         px, pv = self.net(x0, v0, x.shape[1])
         err = (lambda r: r.abs()) if kind == "l1" else torch.square
         w = self.config.velocity_weight
@@ -191,22 +191,7 @@ class ContactLightningModule(pl.LightningModule):
         """The chunks x, v (N, L, P, d) of ``split`` ("train" or "val"), all of them in order, as the model is fitted
         to them: their first frames corrected by the learned first states where the run learns them."""
         states = self.first_states.get(split)
-        if states is None:
-            return x, v
-        with torch.no_grad():
-            x0, v0 = self._started(x[:, 0], v[:, 0], states.dx.to(x), states.dv.to(v))
-        return torch.cat([x0[:, None], x[:, 1:]], 1), torch.cat([v0[:, None], v[:, 1:]], 1)
-
-    def _started(
-        self, x0: torch.Tensor, v0: torch.Tensor, dx: torch.Tensor, dv: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Recorded first frames x0, v0 (B, P, d) with their learned corrections dx, dv added, and moved back onto
-        the system's equality constraints where it has them (differentiable)."""
-        x, v = x0 + dx, v0 + dv
-        constraints = self.task.system.constraints
-        if constraints.count == 0:
-            return x, v
-        return constraints.project(x, v, tol=torch.finfo(x.dtype).eps ** 0.75, at_least=1)
+        return (x, v) if states is None else states.corrected(x, v)
 
     def _first(self, batch, split: str) -> tuple[torch.Tensor, torch.Tensor] | None:
         """The learned first-state corrections of a chunk batch of ``split`` (leaves), or None."""
@@ -223,16 +208,7 @@ class ContactLightningModule(pl.LightningModule):
                         self.current_epoch, split)  # fmt: skip
             return
         share = self._optimizer().param_groups[0]["lr"] / self.config.lr  # (the schedule's decay so far)
-        states, index = self.first_states[split], batch[4]
-        states.update(index, grads[0], grads[1], self.config.first_state_lr * share)
-        if self.task.system.constraints.count:
-            # the corrections kept as the moves they make: RMSprop scales each coordinate by its own history, so its
-            # step leaves the constraints' tangent space, and a correction off it would pile up unseen (the
-            # projection removes it from the state, not from the correction)
-            with torch.no_grad():
-                x0, v0 = batch[0][:, 0], batch[1][:, 0]
-                x, v = self._started(x0, v0, states.dx[index].to(x0), states.dv[index].to(v0))
-                states.dx[index], states.dv[index] = (x - x0).to(states.dx), (v - v0).to(states.dv)
+        self.first_states[split].update(batch[4], grads[0], grads[1], self.config.first_state_lr * share)
 
     def training_step(self, batch, batch_idx: int):
         opt = self._optimizer()

@@ -18,6 +18,7 @@ from lightning.pytorch.strategies import DDPStrategy
 from lightning.pytorch.utilities import rank_zero_info
 
 from diffcontact.config import load_task
+from diffcontact.data.noise import noise_kind
 from diffcontact.data.store import load_meta
 from diffcontact.errors import ConfigError
 from diffcontact.files import TMP_PREFIX, atomic_write, save_figure, versions, write_json
@@ -25,6 +26,7 @@ from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.run_dir import RunDir
 from diffcontact.solver.contact_solver import load_failed, save_failed
+from diffcontact.systems.registry import build_task
 from diffcontact.train.coef_start import scan_coefficients
 from diffcontact.train.config import TrainConfig
 from diffcontact.train.datamodule import ContactDataModule
@@ -165,7 +167,7 @@ class _ShuffleState(pl.Callback):
 # where the stop ended the run at 95 with the checkpoint of epoch 64 (e 0.898 against 0.936, 5-step error 0.101
 # against 0.059).
 NOISY_PATIENCE = 30
-# On such data the first state of every training chunk is learned with the model (a contact model:
+# On such data the first state of every training chunk is learned with the model (a contact model on free points:
 # ``first_state_settings``), at this fraction of the recorded noise a step.
 FIRST_STATE_LR = 0.1
 ACCELERATORS = ("cpu",)  # (the physics path keeps its constant tensors on the CPU: docs/scaling.md, GPUs)
@@ -459,11 +461,13 @@ def recorded_noise(folder: str | Path) -> float:
 
 def first_state_settings(config: TrainConfig, data: ContactDataModule) -> dict:
     """``first_state_chunks`` and ``first_state_lr`` of a run of ``config`` on ``data``: every training chunk's
-    first state learned, at ``FIRST_STATE_LR`` × the noise a step, where the dataset records observation noise and
-    the model is a contact model (a constrained system's corrected first states are projected back onto its
-    constraints); none otherwise (docs/training.md, "Noise")."""
+    first state learned, at ``FIRST_STATE_LR`` × the noise a step, where the dataset records observation noise, the
+    model is a contact model and the system's points are free (no equality constraints, noise in Cartesian
+    coordinates: balls, the rope); none otherwise (docs/training.md, "Noisy data": on the chain pendulum, its
+    corrected first states projected back onto the constraints, they made μ, e and the 5-step error worse)."""
     noise = recorded_noise(data.folder)
-    if not noise * FIRST_STATE_LR or config.model not in MODEL_NAMES:
+    free = noise_kind(build_task(config.task).system) == "free"
+    if not noise * FIRST_STATE_LR or config.model not in MODEL_NAMES or not free:
         return {"first_state_chunks": 0, "first_state_val_chunks": 0, "first_state_lr": 0.0}
     data.setup()
     train, val = (len(data.splits[name].chunk_x) for name in ("train", "val"))
