@@ -59,11 +59,7 @@ def add_noise(
     x1, v1 = x + nx, v + nv
     if system.constraints.count == 0:
         return x1, v1
-    return _project(system.constraints, x1, v1)
-
-
-def _project(cons, x, v):
     try:
-        return cons.project(x, v, _PROJECTION_TOL, _PROJECTION_STEPS)
+        return system.constraints.project(x1, v1, _PROJECTION_TOL, _PROJECTION_STEPS)
     except FloatingPointError as err:
         raise DatasetError(f"noise {err}") from None

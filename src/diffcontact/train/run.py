@@ -84,8 +84,8 @@ def planned_epochs(epochs: int, min_steps: int, batches_per_epoch: int) -> int:
 class _RunCheckpoint(ModelCheckpoint):
     """ModelCheckpoint whose record of the best and last checkpoints follows its run directory when the run was
     moved or copied (Lightning's would forget the best score and write last-v1.ckpt), and that writes last.ckpt at
-    the end of every validation: Lightning (2.6) writes it only when a best checkpoint is written in the same step, so
-    a run whose validation loss had stopped improving resumed from its best epoch, not its last."""
+    the end of every epoch: Lightning (2.6) writes it only when a best checkpoint is written in the same step, so a
+    run whose validation loss had stopped improving resumed from its best epoch, not its last."""
 
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         super().on_train_epoch_end(trainer, pl_module)
