@@ -5,8 +5,13 @@ from __future__ import annotations
 import diffcontact  # noqa: F401  (before torch: it sets OpenMP's wait policy, read when torch loads)
 
 # isort: split
+import os
+
 import pytest
 import torch
+
+if os.environ.get("PYTEST_XDIST_WORKER"):  # (one test process per CPU: one thread each, not one per CPU each)
+    torch.set_num_threads(1)
 
 
 @pytest.fixture

@@ -4,6 +4,7 @@ finished training is never redone."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
@@ -19,6 +20,11 @@ from diffcontact.eval.reproduce import reproduce
 from diffcontact.run_dir import RunDir
 
 TASK, MODEL = "BP5-e", "CM-CD-CLNN"
+
+
+def _needs(engine: str) -> pytest.MarkDecorator:
+    """Skip a test whose engine (an optional extra) is not installed, before its fixtures train anything."""
+    return pytest.mark.skipif(importlib.util.find_spec(engine) is None, reason=f"{engine} is not installed")
 
 
 def _result(out: Path) -> dict:
@@ -55,8 +61,8 @@ def test_bad_backend_settings_are_refused_by_name():
 
 
 @pytest.mark.slow
+@_needs("submitit")
 def test_submitit_runs_the_same_cells_as_the_local_pool(local, tmp_path):
-    pytest.importorskip("submitit")
     out = tmp_path / "slurm"
     reproduce([TASK], [MODEL], [0], out, quick=True, epochs=2, echo=lambda _: None,
               backend=Backend("slurm", cluster="local"))  # fmt: skip
@@ -74,6 +80,7 @@ def ray_cluster():
 
 
 @pytest.mark.slow
+@_needs("ray")
 def test_ray_runs_the_same_cells_as_the_local_pool(local, ray_cluster, tmp_path):
     out = tmp_path / "ray"
     reproduce([TASK], [MODEL], [0], out, quick=True, epochs=2, echo=lambda _: None, backend=Backend("ray"))
@@ -98,6 +105,7 @@ def _worker_of(run: Path) -> int | None:
 
 
 @pytest.mark.slow
+@_needs("ray")
 def test_a_ray_worker_killed_mid_cell_is_retried_and_resumes_from_its_checkpoint(local, ray_cluster, tmp_path):
     out = tmp_path / "killed"
     run = RunDir.of_cell(out, TASK, MODEL, 0)
