@@ -17,7 +17,7 @@ import torch
 from diffcontact.contact.impulse import COMPENSATION, ContactModel
 from diffcontact.contact.toi import MAX_EVENTS, toi_step
 from diffcontact.dynamics.hamiltonian import hamiltonian_field, momentum, velocity
-from diffcontact.dynamics.inertia import body_blocks
+from diffcontact.dynamics.inertia import apply_blocks, body_blocks
 from diffcontact.dynamics.lagrangian import lagrangian_field
 from diffcontact.errors import ConfigError
 from diffcontact.integrate import rk4_step
@@ -68,6 +68,15 @@ class Simulator:
         x1, p1 = rk4_step(partial(hamiltonian_field, cons, params, Minv=Minv), x, momentum(params, v), dt)
         return x1, velocity(params, p1)
 
+    def rate(self, params: Params, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The vector field that :meth:`flow` integrates, in velocities: (ẋ, v̇) at (x, v), each (B, P, d)."""
+        cons = self.system.constraints
+        _, Minv = body_blocks(params.inertia)
+        if self.dynamics == "lagrangian":
+            return lagrangian_field(cons, params, x, v, Minv=Minv)
+        xdot, pdot = hamiltonian_field(cons, params, x, momentum(params, v), Minv=Minv)
+        return xdot, apply_blocks(Minv, pdot)
+
     def step(self, state: State, params: Params, dt: float) -> tuple[State, torch.Tensor]:
         """One frame of dt (s): ``substeps`` substeps, each RK4 then contacts (Algorithm 1, or at the time of
         impact). Returns (state at t + dt, in_contact (B,) bool: a contact in any substep)."""
@@ -87,8 +96,8 @@ class Simulator:
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         sys = self.system
         if self.time_of_impact:
-            flow = partial(self.flow, params)
-            return toi_step(flow, self.contact_model, sys, params, x, v, h, self.max_events)
+            flow, rate = partial(self.flow, params), partial(self.rate, params)
+            return toi_step(flow, rate, self.contact_model, sys, params, x, v, h, self.max_events)
         x1, v1 = self.flow(params, x, v, h)
         v1, hit = self.contact_model(sys, params, x1, v1, h)
         return x1, v1, hit

@@ -11,10 +11,12 @@ length h from (x, v) runs as a short sequence of events:
 3. the earliest by linear interpolation of the gap, then its fraction s of the interval by safeguarded Newton on
    g(s) = gap(flow(x, v, s·L)) (bracket [0, 1], bisection where Newton leaves it), so that the gap of the
    flowed state is zero;
-4. gradient: one Newton step at the root, s − g(s)/g_s with g_s = ġ·L held constant, so that
-   ds/dθ = −g_θ/g_s (implicit function theorem; zero where |g_s| <= tol, i.e. a grazing contact);
-5. move to the impact (flow over s·L), resolve every contact with gap < tol there (the earliest always) with the
-   same ContactModel (both convex problems; the penetration target only sees negative gaps), then go on.
+4. gradient: the impact time τ = s·L moves by δτ = −g/ġ from the last Newton point (held constant there), so
+   that dτ/dθ = −g_θ/ġ (implicit function theorem; zero where |ġ·L| <= tol, i.e. a grazing contact), and the
+   state moves with it to first order, (x, v) + δτ·(ẋ, v̇): one evaluation of the vector field instead of a
+   second flow (δτ is the Newton residual's, below 1e-12 s in float64, so the values are those of a flow to τ);
+5. resolve every contact with gap < tol at the impact (the earliest always) with the same ContactModel (both
+   convex problems; the penetration target only sees negative gaps), then go on.
 
 At most ``max_events`` events per step and one per contact (a contact that comes back within the same step, e.g. a
 rope limit chattering under its spring with e = 0, is not re-timed); whatever still penetrates at the end of the
@@ -39,6 +41,8 @@ if TYPE_CHECKING:
 
 Flow = Callable[[torch.Tensor, torch.Tensor, float | torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 """The smooth flow (x, v, dt) -> (x, v) at t + dt; dt a float or a tensor (B, 1, 1) in s."""
+Rate = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+"""The smooth vector field (x, v) -> (ẋ, v̇) of the flow, each (B, P, d)."""
 
 MAX_EVENTS = 8
 NEWTON_ITERS = 12
@@ -49,28 +53,31 @@ def event_tol(dtype: torch.dtype) -> float:
     return max(1e-9, 100 * torch.finfo(dtype).eps)
 
 
-@torch.no_grad()
 def impact_fraction(
     flow: Flow, detector: Detector, x: torch.Tensor, v: torch.Tensor, L: torch.Tensor, k: torch.Tensor, s0: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Root s in [0, 1] of g(s) = gap_k(flow(x, v, s L)) for elements whose gap k goes from >= 0 to < 0.
 
     x, v (B, P, d); L (B,) interval length in s; k (B,) candidate index; s0 (B,) first guess. Returns s (B,),
-    the flowed state (x, v) at s, and g_s = ġ L (B,) there. Safeguarded Newton, at most NEWTON_ITERS flows.
+    the flowed state (x, v) at s, and g_s = ġ L (B,) there. Safeguarded Newton, at most NEWTON_ITERS flows. The
+    flows run with gradients as outside, at times s L held constant: the state returned is connected to x, v and
+    the flow's parameters (so the caller need not flow to the root again); s and g_s are not.
     """
     atol = 64 * torch.finfo(x.dtype).eps
+    L, s0 = L.detach(), s0.detach()
     lo, hi = torch.zeros_like(s0), torch.ones_like(s0)
     s = s0.clamp(0.0, 1.0)
     xr = vr = slope = None  # (set by the first iteration)
     for it in range(NEWTON_ITERS):
         xr, vr = flow(x, v, (s * L)[:, None, None])
-        g, rate = detector.rates(xr, vr)
-        g, slope = g.gather(1, k[:, None])[:, 0], rate.gather(1, k[:, None])[:, 0] * L
-        done = g.abs() <= atol
-        lo, hi = torch.where(g >= 0, s, lo), torch.where(g < 0, s, hi)
-        newton = s - g / slope
-        ok = (slope < 0) & (newton > lo) & (newton < hi)
-        s_next = torch.where(done, s, torch.where(ok, newton, 0.5 * (lo + hi)))
+        with torch.no_grad():
+            g, rate = detector.rates(xr.detach(), vr.detach())
+            g, slope = g.gather(1, k[:, None])[:, 0], rate.gather(1, k[:, None])[:, 0] * L
+            done = g.abs() <= atol
+            lo, hi = torch.where(g >= 0, s, lo), torch.where(g < 0, s, hi)
+            newton = s - g / slope
+            ok = (slope < 0) & (newton > lo) & (newton < hi)
+            s_next = torch.where(done, s, torch.where(ok, newton, 0.5 * (lo + hi)))
         if bool((s_next == s).all()) or it == NEWTON_ITERS - 1:  # converged, or return the last point evaluated
             break
         s = s_next
@@ -81,6 +88,7 @@ def impact_fraction(
 
 def toi_step(
     flow: Flow,
+    rate: Rate,
     model: ContactModel,
     system: System,
     params: Params,
@@ -89,7 +97,8 @@ def toi_step(
     dt: float,
     max_events: int = MAX_EVENTS,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One step of length dt (s) of ``system`` from x, v (B, P, d) with contacts at their time of impact.
+    """One step of length dt (s) of ``system`` from x, v (B, P, d) with contacts at their time of impact; ``rate``
+    the vector field that ``flow`` integrates.
 
     Returns (x, v) at t + dt and in_contact (B,) bool (an event or an end-of-step contact).
     """
@@ -113,14 +122,17 @@ def toi_step(
             frac = torch.where(ahead, a / torch.where(ahead, a - b, 1.0), torch.where(c, 0.0, torch.inf))
             s0, k = frac.min(dim=1)
         xs, vs, L = x[rows], v[rows], rem[rows]
-        s, xc, vc, slope = impact_fraction(flow, detector, xs, vs, L.detach(), k, s0)
+        s, xc, vc, slope = impact_fraction(flow, detector, xs, vs, L, k, s0)
+        tau = s * L.detach()  # (the impact's time in the interval, s)
         if torch.is_grad_enabled():
-            # ds/dθ = −g_θ / g_s by one Newton step at the root (g_s held constant; 0 where grazing)
-            xr, _ = flow(xs, vs, (s * L)[:, None, None])
-            g = detector.gaps(xr).gather(1, k[:, None])[:, 0]
+            # dτ/dθ = −g_θ / ġ by one Newton step at the root (ġ held constant; 0 where grazing), the state
+            # moved with it to first order
+            g = detector.gaps(xc).gather(1, k[:, None])[:, 0]
             ok = slope < -tol
-            s = s + torch.where(ok, -g / torch.where(ok, slope, -1.0), torch.zeros_like(g))
-            xc, vc = flow(xs, vs, (s * L)[:, None, None])
+            shift = torch.where(ok, -g * L.detach() / torch.where(ok, slope, -1.0), torch.zeros_like(g))
+            xd, vd = rate(xc, vc)
+            xc, vc = xc + shift[:, None, None] * xd, vc + shift[:, None, None] * vd
+            tau = tau + shift
         with torch.no_grad():
             gc = detector.gaps(xc)
             mark = (gc < tol) | torch.nn.functional.one_hot(k, gc.shape[1]).bool()
@@ -129,7 +141,7 @@ def toi_step(
             raise AssertionError("no contact at a time of impact")
         ph = model.phases(system.constraints, params, xc, vc, contacts, dt)
         vc = vc + (ph.MhJt @ (ph.f_c + ph.f_r)[..., None]).reshape(vc.shape)
-        L_after = (1 - s) * L
+        L_after = L - tau
         xe, ve = flow(xc, vc, L_after[:, None, None])
         x, v = x.index_put((rows,), xc), v.index_put((rows,), vc)
         x1, v1 = x1.index_put((rows,), xe), v1.index_put((rows,), ve)

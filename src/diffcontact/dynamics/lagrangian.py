@@ -10,26 +10,20 @@ import torch
 
 from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import apply_blocks, body_blocks
+from diffcontact.dynamics.potentials import gradient_force
 from diffcontact.state import ForcePotential, Params
 
 
 def potential_force(params: Params, x: torch.Tensor) -> torch.Tensor:
-    """f = −∇V(x) of ``params.potential_energy``: x (B, P, d) -> (B, P, d) in N; by autograd, or the potential's
-    own closed form (:class:`~diffcontact.state.ForcePotential`, e.g. the learned MLP, which uses no masses).
+    """f = −∇V(x) of ``params.potential_energy``: x (B, P, d) -> (B, P, d) in N; the potential's own closed form
+    (:class:`~diffcontact.state.ForcePotential`: the known potentials and the learned networks), else by autograd.
 
     The graph of ∇V is kept when gradients are enabled outside (training, gradient tests), so the force is
     differentiable w.r.t. x and the potential's parameters; under ``torch.no_grad`` it is not.
     """
     if isinstance(params.potential, ForcePotential):
-        return params.potential.force(x)
-    outer = torch.is_grad_enabled()
-    with torch.enable_grad():
-        xg = x if x.requires_grad else x.detach().requires_grad_(True)
-        V = params.potential_energy(xg)
-        if not V.requires_grad:  # a constant potential
-            return torch.zeros_like(x)
-        (grad,) = torch.autograd.grad(V.sum(), xg, create_graph=outer)
-    return -grad
+        return params.potential.force(x, params.inertia.masses)
+    return gradient_force(params.potential, x, params.inertia.masses)
 
 
 def constrained_acceleration(

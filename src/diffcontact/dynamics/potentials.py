@@ -1,18 +1,43 @@
 """Known potentials of the benchmark systems. Each is a callable V(x, masses): (B, P, d), (n_bodies,) -> (B,)
 (``state.Potential``; the masses are the Params' own, see ``Params.potential_energy``).
 
-A learned model replaces them by an ``nn.Module`` with the same signature; the dynamics take ∇V by
-autograd, so they never need a closed-form gradient.
+A learned model replaces them by an ``nn.Module`` with the same signature.  Each also gives its force −∇V in
+closed form (``ForcePotential.force``), which the dynamics use instead of autograd's gradient (a double backward in
+training); a potential without one gets autograd's (:func:`gradient_force`).
 """
 
 from __future__ import annotations
 
 import torch
 
-from diffcontact.state import with_anchors
+from diffcontact.state import ForcePotential, with_anchors
 
 
-class Gravity:
+def gradient_force(potential, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
+    """−∇V(x) (B, P, d) of ``potential`` (V(x, masses) -> (B,)) by autograd; its graph is kept when gradients are
+    enabled outside (training, gradient tests), so the force is differentiable w.r.t. x and V's parameters."""
+    outer = torch.is_grad_enabled()
+    with torch.enable_grad():
+        xg = x if x.requires_grad else x.detach().requires_grad_(True)
+        V = potential(xg, masses)
+        if not V.requires_grad:  # a constant potential
+            return torch.zeros_like(x)
+        (grad,) = torch.autograd.grad(V.sum(), xg, create_graph=outer)
+    return -grad
+
+
+def centre_force(g: torch.Tensor | float, up: torch.Tensor, stride: int, x: torch.Tensor, masses: torch.Tensor):
+    """−∇V (B, P, d) of V = g Σ_b m_b (c_b · up): −g m_b up on each body's centre (its first of ``stride`` points),
+    nothing on the other points."""
+    B, P, d = x.shape
+    pull = (-g * masses.to(x)[:, None] * up.to(x)).expand(B, -1, -1)  # (B, n_bodies, d)
+    if stride == 1:
+        return pull
+    zeros = x.new_zeros(B, P // stride, stride - 1, d)
+    return torch.cat([pull[:, :, None], zeros], dim=2).reshape(B, P, d)
+
+
+class Gravity(ForcePotential):
     """V = g Σ_b m_b (c_b · up): uniform gravity of strength g (m/s²) pulling along −``up``.
 
     The masses m_b (n_bodies,) are the Params' (they may require grad); the centre of each body is its first
@@ -27,8 +52,13 @@ class Gravity:
         height = x[:, :: self.stride] @ self.up.to(x)  # (B, n_bodies)
         return self.g * (height * masses.to(x)).sum(-1)
 
+    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+        if masses is None:
+            raise ValueError("gravity's force needs the body masses")
+        return centre_force(self.g, self.up, self.stride, x, masses)
 
-class Springs:
+
+class Springs(ForcePotential):
     """V = Σ_s k_s (|x_i − x_j| − l_s)² over spring endpoints (i, j) in extended point indices.
 
     Indices >= P refer to fixed ``anchors`` (n_anchors, d). There is no ½ factor (as in the benchmark's rope).
@@ -42,8 +72,17 @@ class Springs:
         length = (ext[:, self.i] - ext[:, self.j]).norm(dim=-1)
         return (self.k.to(x) * (length - self.rest.to(x)) ** 2).sum(-1)
 
+    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+        """−2 k (|x_i − x_j| − l) u on i and its opposite on j, u the unit vector from j to i (none on anchors)."""
+        ext = with_anchors(x, self.anchors)
+        delta = ext[:, self.i] - ext[:, self.j]  # (B, S, d)
+        length = delta.norm(dim=-1, keepdim=True)
+        pull = -2 * self.k.to(x)[:, None] * (length - self.rest.to(x)[:, None]) * delta / length
+        i, j = self.i.to(x.device), self.j.to(x.device)
+        return torch.zeros_like(ext).index_add(1, i, pull).index_add(1, j, -pull)[:, : x.shape[1]]
 
-class SumPotential:
+
+class SumPotential(ForcePotential):
     """The sum of several potentials (an empty sum is V = 0)."""
 
     def __init__(self, *terms):
@@ -53,4 +92,16 @@ class SumPotential:
         total = x.new_zeros(x.shape[0]) + 0.0 * x.flatten(1).sum(-1)  # keeps V connected to x
         for term in self.terms:
             total = total + term(x, masses)
+        return total
+
+    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+        """The sum of the terms' forces: each term's closed form, or autograd's gradient of a term without one."""
+        total = torch.zeros_like(x)
+        for term in self.terms:
+            if isinstance(term, ForcePotential):
+                total = total + term.force(x, masses)
+            else:
+                if masses is None:
+                    raise ValueError("a term without a closed-form force needs the body masses")
+                total = total + gradient_force(term, x, masses)
         return total

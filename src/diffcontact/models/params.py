@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, cast
 import torch
 from torch import nn
 
+from diffcontact.dynamics.potentials import centre_force
 from diffcontact.errors import ConfigError
 from diffcontact.state import ForcePotential, Inertia, Params
 
@@ -66,7 +67,7 @@ class MLPPotential(nn.Module, ForcePotential):
     def forward(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
         return self.net(x.flatten(1)).squeeze(-1)
 
-    def force(self, x: torch.Tensor) -> torch.Tensor:
+    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
         """−∇V(x) (B, P, d): the layers forward, then their transposes times the Softplus slopes (sigmoids) back.
 
         Equal to autograd's gradient up to rounding (Softplus' slope above its threshold, 20, is 1 there and the
@@ -107,7 +108,7 @@ class LinkedPotential(nn.Module, ForcePotential):
         s, _ = self.links.stretch(x)
         return self.body(x) + self.pair(s.reshape(-1, 1, 1)).reshape(s.shape).sum(-1)
 
-    def force(self, x: torch.Tensor) -> torch.Tensor:
+    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
         """−∇V(x) (B, P, d): the network's, plus −φ'(s) u / spread on each link's point i and its opposite on j."""
         s, u = self.links.stretch(x)
         B, P = x.shape[:2]
@@ -117,7 +118,7 @@ class LinkedPotential(nn.Module, ForcePotential):
         return self.body.force(x) + ext[:, :P]
 
 
-class LearnedGravity(nn.Module):
+class LearnedGravity(nn.Module, ForcePotential):
     """V = g Σ_b m_b (c_b · up) with a learned strength g = exp(log_g) (m/s²), up the last axis (z in 3-D, y in
     2-D); the centre of each body is its first point (``stride`` points per body).  g starts at 9.81·exp(0.1·N(0, 1)).
     """
@@ -133,7 +134,14 @@ class LearnedGravity(nn.Module):
         return self.log_g.exp()
 
     def forward(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
-        return self.g * (x[:, :: self.stride, -1] * masses.to(x)).sum(-1)  # (its force, by autograd, reads the masses)
+        return self.g * (x[:, :: self.stride, -1] * masses.to(x)).sum(-1)
+
+    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+        if masses is None:
+            raise ValueError("gravity's force needs the body masses")
+        up = x.new_zeros(x.shape[-1])
+        up[-1] = 1.0
+        return centre_force(self.g, up, self.stride, x, masses)
 
 
 class LearnedParams(nn.Module):
