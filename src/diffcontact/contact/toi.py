@@ -86,6 +86,32 @@ def impact_fraction(
     return s, xr, vr, slope
 
 
+def impact_state(
+    flow: Flow,
+    rate: Rate,
+    detector: Detector,
+    x: torch.Tensor,
+    v: torch.Tensor,
+    L: torch.Tensor,
+    k: torch.Tensor,
+    s0: torch.Tensor,
+    tol: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The time τ (B,) in s at which gap k (B,) of the flow from x, v (B, P, d) reaches zero within L (B,) s, and the
+    state (x, v) there, first guess s0 (B,) of τ / L (:func:`impact_fraction`). With gradients enabled, τ and the
+    state carry dτ/dθ = −g_θ / ġ: one Newton step at the root with ġ held constant (0 where |ġ L| <= tol, a grazing
+    contact), the state moved with it to first order, (x, v) + δτ·(ẋ, v̇) with ``rate`` the flow's vector field."""
+    s, xc, vc, slope = impact_fraction(flow, detector, x, v, L, k, s0)
+    tau = s * L.detach()
+    if torch.is_grad_enabled():
+        g = detector.gaps(xc).gather(1, k[:, None])[:, 0]
+        ok = slope < -tol
+        shift = torch.where(ok, -g * L.detach() / torch.where(ok, slope, -1.0), torch.zeros_like(g))
+        xd, vd = rate(xc, vc)
+        xc, vc, tau = xc + shift[:, None, None] * xd, vc + shift[:, None, None] * vd, tau + shift
+    return tau, xc, vc
+
+
 def toi_step(
     flow: Flow,
     rate: Rate,
@@ -122,17 +148,7 @@ def toi_step(
             frac = torch.where(ahead, a / torch.where(ahead, a - b, 1.0), torch.where(c, 0.0, torch.inf))
             s0, k = frac.min(dim=1)
         xs, vs, L = x[rows], v[rows], rem[rows]
-        s, xc, vc, slope = impact_fraction(flow, detector, xs, vs, L, k, s0)
-        tau = s * L.detach()  # (the impact's time in the interval, s)
-        if torch.is_grad_enabled():
-            # dτ/dθ = −g_θ / ġ by one Newton step at the root (ġ held constant; 0 where grazing), the state
-            # moved with it to first order
-            g = detector.gaps(xc).gather(1, k[:, None])[:, 0]
-            ok = slope < -tol
-            shift = torch.where(ok, -g * L.detach() / torch.where(ok, slope, -1.0), torch.zeros_like(g))
-            xd, vd = rate(xc, vc)
-            xc, vc = xc + shift[:, None, None] * xd, vc + shift[:, None, None] * vd
-            tau = tau + shift
+        tau, xc, vc = impact_state(flow, rate, detector, xs, vs, L, k, s0, tol)
         with torch.no_grad():
             gc = detector.gaps(xc)
             mark = (gc < tol) | torch.nn.functional.one_hot(k, gc.shape[1]).bool()

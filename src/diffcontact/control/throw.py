@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from diffcontact.contact.toi import impact_fraction
+from diffcontact.contact.toi import event_tol, impact_state
 from diffcontact.control.optimise import InfeasibleControlError
 from diffcontact.errors import ConfigError
 from diffcontact.simulator import Simulator, simulator_for
@@ -150,16 +150,12 @@ class Throw:
         the states x, v (B, 3, 2) at the start of that frame; the gradient through the impact time by the implicit
         function theorem (as in the time-of-impact step)."""
         ph = self.physics
-        flow = partial(ph.sim.flow, ph.params)
+        flow, rate = partial(ph.sim.flow, ph.params), partial(ph.sim.rate, ph.params)
         B = x.shape[0]
         L = torch.full((B,), ph.task.dt, dtype=x.dtype)
         k = torch.full((B,), self.ground, dtype=torch.long)
         det = ph.task.system.detector
-        s, _, _, slope = impact_fraction(flow, det, x.detach(), v.detach(), L, k, torch.full_like(L, 0.5))
-        ok = slope < 0
-        x_root, _ = flow(x, v, (s * L)[:, None, None])
-        s = s - torch.where(ok, det.gaps(x_root)[:, self.ground] / torch.where(ok, slope, -1.0), 0.0)
-        x_imp, _ = flow(x, v, (s * L)[:, None, None])
+        _, x_imp, _ = impact_state(flow, rate, det, x, v, L, k, torch.full_like(L, 0.5), event_tol(x.dtype))
         return x_imp[:, 0]
 
     def residual(self, theta: torch.Tensor) -> torch.Tensor:
