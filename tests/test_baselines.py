@@ -17,8 +17,8 @@ from diffcontact.models.baselines import InteractionNetCLNN, InteractionNetSP, M
 from diffcontact.models.baselines.graphs import EQUALITY
 from diffcontact.train.run import train_run
 
-# task: (objects, relations, relation attributes) of the spec's F.2; the Rope's 76 published relations include 2
-# into the fixed anchor, whose effects are discarded, which we leave out (74)
+# task: (objects, relations, relation attributes) of the published interaction networks; the Rope's 76 published
+# relations include 2 into the fixed anchor, whose effects are discarded, which we leave out (74)
 SPEC_GRAPHS = {
     "BP5": (9, 40, 2),
     "BD5": (19, 70, 3),

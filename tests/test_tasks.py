@@ -140,7 +140,7 @@ def test_float32_tasks_run_in_float32():
 
 @pytest.mark.slow
 def test_billiards_first_iteration_loss_matches_the_published_value():
-    """Spec H.7: the downstream billiards loss |x_10(T) − goal|² at the initial cue state was 0.04548 in the
+    """The paper's downstream billiards task: the loss |x_10(T) − goal|² at the initial cue state was 0.04548 in the
     paper's code and 0.04542 in DiffTaichi; ours, with the paper's end-of-step contact scheme, must land
     in that bracket (±1e-4).  (The task's default is the time of impact, which gives 0.04566: docs/gradients.md.)"""
     task = build_task("Billiards")

@@ -493,7 +493,7 @@ def control_billiards(
     balls: int = typer.Option(11, "--balls", help="Balls on the table (the cue ball and a triangle of balls - 1)."),
     frames: int = typer.Option(0, "--frames", help="Frames simulated (0 = the task's 1024)."),
     search_shots: int = typer.Option(
-        256, "--search-shots", help="Global stage: cue lines per round, in one batch (0 = start from the spec's θ0)."
+        256, "--search-shots", help="Global stage: cue lines per round, in one batch (0 = start from the published θ0)."
     ),
     search_rounds: int = typer.Option(3, "--search-rounds", help="Global stage: rounds (simulations)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the search's cue lines."),

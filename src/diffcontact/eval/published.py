@@ -1,4 +1,4 @@
-"""The published numbers the report compares with (benchmark spec, section H; the authors' notebook outputs)."""
+"""The published numbers the report compares with: the paper's tables and figures, and the authors' notebooks."""
 
 from __future__ import annotations
 

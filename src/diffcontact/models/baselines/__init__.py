@@ -43,7 +43,7 @@ def _gravity_force(task) -> torch.Tensor:
 
 def build_baseline(task, name: str, *, hidden: int = 256, layers: int = 3, seed: int = 0) -> Baseline:
     """One of :data:`BASELINE_NAMES` for a Task, float64.  ``hidden``, ``layers``: the learned potential's MLP (and
-    MLP-CD-CLNN's jump MLP; the paper's 256 × 3); the interaction networks have the spec's sizes."""
+    MLP-CD-CLNN's jump MLP; the paper's 256 × 3); the interaction networks have the published sizes."""
     if name not in BASELINE_NAMES:
         raise ConfigError(f"model = {name!r} is not one of {list(BASELINE_NAMES)}")
     system = task.system
