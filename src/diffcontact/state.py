@@ -32,9 +32,9 @@ class ForcePotential(ABC):
     same values, a cheaper training step."""
 
     @abstractmethod
-    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
-        """−∇V(x): positions (B, P, d) in m and the body masses (n_bodies,) in kg (as V reads them; most
-        potentials ignore them) -> forces (B, P, d) in N."""
+    def force(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
+        """−∇V(x): positions (B, P, d) in m and the body masses (n_bodies,) in kg (as V reads them; the networks
+        ignore them) -> forces (B, P, d) in N."""
 
 
 @dataclass(frozen=True)

@@ -52,9 +52,7 @@ class Gravity(ForcePotential):
         height = x[:, :: self.stride] @ self.up.to(x)  # (B, n_bodies)
         return self.g * (height * masses.to(x)).sum(-1)
 
-    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
-        if masses is None:
-            raise ValueError("gravity's force needs the body masses")
+    def force(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
         return centre_force(self.g, self.up, self.stride, x, masses)
 
 
@@ -94,14 +92,10 @@ class SumPotential(ForcePotential):
             total = total + term(x, masses)
         return total
 
-    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+    def force(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
         """The sum of the terms' forces: each term's closed form, or autograd's gradient of a term without one."""
         total = torch.zeros_like(x)
         for term in self.terms:
-            if isinstance(term, ForcePotential):
-                total = total + term.force(x, masses)
-            else:
-                if masses is None:
-                    raise ValueError("a term without a closed-form force needs the body masses")
-                total = total + gradient_force(term, x, masses)
+            force = term.force(x, masses) if isinstance(term, ForcePotential) else gradient_force(term, x, masses)
+            total = total + force
         return total

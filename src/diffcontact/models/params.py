@@ -136,9 +136,7 @@ class LearnedGravity(nn.Module, ForcePotential):
     def forward(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
         return self.g * (x[:, :: self.stride, -1] * masses.to(x)).sum(-1)
 
-    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
-        if masses is None:
-            raise ValueError("gravity's force needs the body masses")
+    def force(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
         up = x.new_zeros(x.shape[-1])
         up[-1] = 1.0
         return centre_force(self.g, up, self.stride, x, masses)
