@@ -85,7 +85,7 @@ class Simulator:
             raise ConfigError("substeps is not set")
         h = dt / substeps
         x, v = state.x, state.v
-        hit = torch.zeros(state.batch, dtype=torch.bool)
+        hit = torch.zeros(state.batch, dtype=torch.bool, device=state.x.device)
         for _ in range(substeps):
             x, v, sub_hit = self._substep(params, x, v, h)
             hit = hit | sub_hit
@@ -117,9 +117,9 @@ class Simulator:
         state.check_finite(where=f"{self.system.name} initial state")
         if state.batch == 0:  # (an empty batch: nothing to step)
             empty = (state.x.new_zeros(0, frames, *state.x.shape[1:]), state.v.new_zeros(0, frames, *state.v.shape[1:]))
-            return (*empty, torch.zeros(0, frames, dtype=torch.bool))
+            return (*empty, torch.zeros(0, frames, dtype=torch.bool, device=state.x.device))
         xs, vs = [state.x], [state.v]
-        flags = [torch.zeros(state.batch, dtype=torch.bool)]
+        flags = [torch.zeros(state.batch, dtype=torch.bool, device=state.x.device)]
         for t in range(1, frames):
             state, hit = self.step(state, params, dt)
             state.check_finite(where=f"{self.system.name} frame {t}")

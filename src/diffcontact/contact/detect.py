@@ -49,13 +49,15 @@ class Detector:
         self._cols = torch.cat(
             [pad(torch.where(k.cols < n_points, k.cols, n_points), (0, self._m - k.cols.shape[1]), value=n_points)
              for k in self.kinds]
-        ) if self.kinds else torch.zeros(0, 0, dtype=torch.long)  # fmt: skip
+        ) if self.kinds else torch.zeros(0, 0, dtype=torch.long, device=anchors.device)  # fmt: skip
         if self.kinds:
             self.slot = torch.cat([k.slot for k in self.kinds])
-            self.frictionless = torch.cat([torch.full((k.count,), k.dc < self.dc) for k in self.kinds])
+            self.frictionless = torch.cat(
+                [torch.full((k.count,), k.dc < self.dc, device=k.slot.device) for k in self.kinds]
+            )
         else:
-            self.slot = torch.zeros(0, dtype=torch.long)
-            self.frictionless = torch.zeros(0, dtype=torch.bool)
+            self.slot = torch.zeros(0, dtype=torch.long, device=anchors.device)
+            self.frictionless = torch.zeros(0, dtype=torch.bool, device=anchors.device)
 
     def extend(self, x: torch.Tensor) -> torch.Tensor:
         """Positions with the fixed anchors appended: (B, P, d) -> (B, P + n_anchors, d)."""
@@ -84,7 +86,7 @@ class Detector:
                 raise TypeError(f"{type(kind).__name__}.evaluate(rows=True) returned no rows")
             terms.append(pad(vals, (0, 0, 0, self.dc - kind.dc, 0, self._m - vals.shape[2])))
         vals = torch.cat(terms, dim=1)  # (B, K_max, m, dc, d)
-        cols = self._cols.expand(B, -1, -1)
+        cols = self._cols.to(x.device).expand(B, -1, -1)  # (static: follows x's device)
         if order is not None:
             vals = torch.gather(vals, 1, order[:, :, None, None, None].expand(-1, -1, *vals.shape[2:]))
             cols = torch.gather(cols, 1, order[:, :, None].expand(-1, -1, self._m))
@@ -121,8 +123,8 @@ class Detector:
             active=active,
             gap=gap,
             J=J,
-            slot=self.slot[order],
-            frictionless=self.frictionless[order],
+            slot=self.slot.to(order.device)[order],
+            frictionless=self.frictionless.to(order.device)[order],
             dc=self.dc,
         )
 

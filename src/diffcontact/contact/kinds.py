@@ -17,7 +17,7 @@ from diffcontact.contact.frames import point_weights, tangent_frame
 
 
 def _body_points(body: torch.Tensor, q: int) -> torch.Tensor:
-    return body[:, None] * q + torch.arange(q)[None, :]
+    return body[:, None] * q + torch.arange(q, device=body.device)[None, :]
 
 
 class ContactKind:

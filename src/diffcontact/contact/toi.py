@@ -131,9 +131,9 @@ def toi_step(
     B, detector = x.shape[0], system.detector
     tol = event_tol(x.dtype)
     x1, v1 = flow(x, v, dt)
-    rem = torch.full((B,), dt, dtype=x.dtype)  # time left in the step (s); carries ds/dθ after an event
-    hit = torch.zeros(B, dtype=torch.bool)
-    resolved = torch.zeros(B, detector.count, dtype=torch.bool)  # contacts that had their event in this step
+    rem = x.new_full((B,), dt)  # time left in the step (s); carries ds/dθ after an event
+    hit = x.new_zeros(B, dtype=torch.bool)
+    resolved = x.new_zeros(B, detector.count, dtype=torch.bool)  # contacts that had their event in this step
     for _ in range(max_events):
         g0, r0 = detector.rates(x, v)
         with torch.no_grad():

@@ -43,18 +43,19 @@ class Constraints:
         self.count = self.n_dist + d * self.n_joint
         # signed incidence (E1, P): +1 at i, −1 at j (anchor columns dropped), so a row is S ⊗ 2(x_i − x_j)
         n_ext = n_points + anchors.shape[0]
-        inc = torch.zeros(self.n_dist, n_ext, dtype=dist_len.dtype)
-        inc[torch.arange(self.n_dist), dist_i] += 1.0
-        inc[torch.arange(self.n_dist), dist_j] -= 1.0
+        inc = torch.zeros(self.n_dist, n_ext, dtype=dist_len.dtype, device=dist_len.device)
+        inc[torch.arange(self.n_dist, device=dist_i.device), dist_i] += 1.0
+        inc[torch.arange(self.n_dist, device=dist_j.device), dist_j] -= 1.0
         self._incidence = inc[:, :n_points]
         self._joint_jac = self._joint_rows()  # (d n_joint, D), constant
 
     def _joint_rows(self) -> torch.Tensor:
-        J = torch.zeros(self.n_joint, self.d, self.P, self.d, dtype=self.joint_w.dtype)
+        J = torch.zeros(self.n_joint, self.d, self.P, self.d, dtype=self.joint_w.dtype, device=self.joint_w.device)
         if self.n_joint:
             q = self.joint_pts.shape[1]
+            joint = torch.arange(self.n_joint, device=self.joint_pts.device)[:, None].expand(-1, q)
             for a in range(self.d):  # build-time only: d <= 3 axes
-                J[torch.arange(self.n_joint)[:, None].expand(-1, q), a, self.joint_pts, a] = self.joint_w
+                J[joint, a, self.joint_pts, a] = self.joint_w
         return J.reshape(self.n_joint * self.d, self.P * self.d)
 
     def _ext(self, x: torch.Tensor) -> torch.Tensor:

@@ -90,7 +90,7 @@ def rows_in_use(mu: torch.Tensor, active: torch.Tensor, d: int) -> torch.Tensor:
     """(B, K·d) bool: rows of active contacts, without the tangential rows of μ = 0 contacts."""
     used = active.repeat_interleave(d, -1)
     if d > 1:
-        tangential = torch.ones(d, dtype=torch.bool)
+        tangential = torch.ones(d, dtype=torch.bool, device=mu.device)
         tangential[0] = False
         used = used & ~((mu == 0).repeat_interleave(d, -1) & tangential.repeat(mu.shape[-1]))
     return used
@@ -157,7 +157,7 @@ def _enters_cones(VN, null, used, mu):
     """(B,) bool: the flat directions can enter the friction cones: with one flat direction v, v or −v lies in
     every active contact's cone (v_n ≥ 0, ‖v_t‖ ≤ μ v_n, up to 1e-9); with several, assumed."""
     B, n = null.shape
-    enters = torch.ones(B, dtype=torch.bool)
+    enters = torch.ones(B, dtype=torch.bool, device=null.device)
     one = null.sum(-1) == 1
     if mu is None or not one.any():
         return enters
@@ -240,7 +240,9 @@ class FlatSet:
 
     def subset(self, sel: torch.Tensor) -> FlatSet:
         """The elements ``sel`` (m,) bool of this set, renumbered 0 … sel.sum() − 1."""
-        return FlatSet(torch.arange(int(sel.sum())), self.PiN[sel], self.consistent[sel], self.ref[sel])
+        return FlatSet(
+            torch.arange(int(sel.sum()), device=self.idx.device), self.PiN[sel], self.consistent[sel], self.ref[sel]
+        )
 
 
 def project_flat(A, q, mu, active, d, tol, found):
@@ -296,7 +298,7 @@ def minimum_norm(f, flat: FlatSet, mu, lower, active, d, solve, problem, sel=Non
     least-norm stage ((m',) ``Status`` codes, in their order; 0 where it is in closed form).
     """
     sel = flat.consistent if sel is None else sel
-    status = torch.zeros(len(flat.idx), dtype=torch.long)
+    status = torch.zeros(len(flat.idx), dtype=torch.long, device=flat.idx.device)
     nullity = _nullity(flat.PiN)
     one = sel & (nullity == 1)
     if one.any():
@@ -324,7 +326,7 @@ def nonunique(f, flat: FlatSet, mu, lower, active, d, solve, first=None):
     away, as for one flat direction) is inside it.  Returns a mask (m,) over the elements of ``flat`` and the points
     (m', n) for the consistent ones; no gradient.
     """
-    spread = torch.zeros(len(flat.idx), dtype=torch.bool)
+    spread = torch.zeros(len(flat.idx), dtype=torch.bool, device=flat.idx.device)
     inner = f[flat.idx].detach().clone()
     nullity = _nullity(flat.PiN)
     one, several = flat.consistent & (nullity == 1), flat.consistent & (nullity > 1)
@@ -402,17 +404,17 @@ def _least_norm_several(idx, x, PiN, solve, problem=None):
     that).  Returns g (m, n), status (m,) (of its last solve where g is not x, else 0 or INACCURATE) and moved
     (m,) bool: the set of minimisers is not a point (g is not x, but where the proximal step failed)."""
     m, n = x.shape
-    eye = torch.eye(n, dtype=x.dtype)
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
     PiR = eye - PiN
     r = (PiR @ x[..., None])[..., 0]
     scale = x.detach().abs().amax(-1).clamp_min(1.0)
-    rho = torch.full((m,), RHO, dtype=x.dtype)
+    rho = torch.full((m,), RHO, dtype=x.dtype, device=x.device)
     w, g = r, x
-    status = torch.zeros(m, dtype=torch.long)
-    live = torch.ones(m, dtype=torch.bool)  # still stepping
-    unconverged = torch.zeros(m, dtype=torch.bool)  # stopped as stalled
-    size = torch.full((m,), torch.inf, dtype=x.dtype)
-    steady = torch.zeros(m, dtype=torch.bool)  # ρ was at RHO_MAX in the step before, too
+    status = torch.zeros(m, dtype=torch.long, device=x.device)
+    live = torch.ones(m, dtype=torch.bool, device=x.device)  # still stepping
+    unconverged = torch.zeros(m, dtype=torch.bool, device=x.device)  # stopped as stalled
+    size = torch.full((m,), torch.inf, dtype=x.dtype, device=x.device)
+    steady = torch.zeros(m, dtype=torch.bool, device=x.device)  # ρ was at RHO_MAX in the step before, too
     for step in range(ALM_STEPS):
         at = live.nonzero().flatten()
         g_at, step_status = solve(idx[at], eye + rho[at, None, None] * PiR[at], -rho[at, None] * w[at])
@@ -477,7 +479,7 @@ def _line_interval(f, v, mu, lower, active, d):
     m, n = f.shape
     K = n // d
     fk, vk = f.view(m, K, d), v.view(m, K, d)
-    inf = torch.full((m, K), torch.inf, dtype=f.dtype)
+    inf = torch.full((m, K), torch.inf, dtype=f.dtype, device=f.device)
     fn, vn = fk[..., 0], vk[..., 0]
     tiny = 1e-12  # (|v_n| below: the bound is at t ~ rounding / 1e-12 or beyond; ignored)
     bound = (lower - fn) / torch.where(vn.abs() > tiny, vn, torch.ones_like(vn))
