@@ -1,0 +1,74 @@
+"""The exact model with one friction coefficient for impacts and another for sustained contact (an experiment).
+
+``investigations/toss_friction.py`` measures on the recorded tosses a flat-sliding deceleration of 0.20–0.23 g and
+a first-impact impulse ratio of 0.155 at the median: one Coulomb μ cannot match both. This script scores the
+nominal model of the task file on a split's whole tosses (as ``evaluate`` does) with μ replaced, for each contact,
+by ``--mu-impact`` where the contact approaches faster than ``--speed`` (m/s) at the start of the compression
+phase, and by ``--mu`` otherwise. It patches the contact solver's call for this run only; the package has no such
+option.
+
+    python investigations/impact_friction.py data/CubeToss --split val --mu 0.215 --mu-impact 0.16 --speed 0.3
+"""
+
+from __future__ import annotations
+
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
+import argparse
+import json
+
+import torch
+
+from diffcontact.eval.pose_metrics import box_toss_metrics
+from diffcontact.eval.tosses import predict_tosses, recorded_tosses
+from diffcontact.models.model import known_model
+from diffcontact.solver.contact_solver import ContactSolver
+from diffcontact.systems.registry import build_task
+
+
+def two_friction_coefficients(mu_impact: float, speed: float) -> None:
+    """Patch ``ContactSolver.__call__``: the compression phase (no lower bound) picks μ per contact from the normal
+    contact velocity it is given, and the restitution phase that follows uses the same μ."""
+    call = ContactSolver.__call__
+    chosen: dict[str, torch.Tensor] = {}
+
+    def patched(self, A, q, mu, lower=None, active=None):
+        if lower is None:
+            normal = q[:, :: q.shape[1] // mu.shape[1]]
+            chosen["mu"] = torch.where(normal < -speed, torch.full_like(mu, mu_impact), mu)
+        return call(self, A, q, chosen["mu"], lower, active)
+
+    ContactSolver.__call__ = patched
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", help="an imported dataset folder (diffcontact import contactnets)")
+    parser.add_argument("--split", default="val")
+    parser.add_argument("--task", default="CubeToss")
+    parser.add_argument("--mu", type=float, required=True, help="μ of sustained contact")
+    parser.add_argument("--mu-impact", type=float, required=True, help="μ of contacts approaching faster than --speed")
+    parser.add_argument("--speed", type=float, default=0.3, help="m/s")
+    parser.add_argument("--e", type=float, default=None, help="default: the task file's")
+    parser.add_argument("--moments-scale", type=float, default=1.0, help="a multiple of the task file's moments")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    moments = build_task(args.task).params.inertia.moments.flatten().tolist()
+    overrides = {"contact": {"mu": [args.mu]}, "body": {"moments": [args.moments_scale * m for m in moments]}}
+    if args.e is not None:
+        overrides["contact"]["cor"] = [args.e]
+    net = known_model(build_task(args.task, overrides))
+    two_friction_coefficients(args.mu_impact, args.speed)
+    predicted = predict_tosses(net, args.data, args.split)
+    tosses, request = recorded_tosses(args.data, args.split)
+    metrics = box_toss_metrics(
+        predicted["position"], predicted["quaternion"], tosses.position, tosses.quaternion, tosses.offsets,
+        request["half_extents_m"], request["table_height_m"],
+    )  # fmt: skip
+    print(json.dumps({"settings": vars(args), "metrics": metrics}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

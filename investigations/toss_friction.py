@@ -1,0 +1,149 @@
+"""What friction the recorded tosses show: in flat sliding, and in the first impact, against the exact model's.
+
+Two measurements from the recorded poses of a split of an imported dataset (``diffcontact import contactnets``),
+made the same way on the exact model's whole-toss rollouts (the task file's values, or ``--mu``/``--e``, from the
+free-flight fit as ``evaluate`` starts them):
+
+- **flat sliding**: frames where the four lowest corners are within 1.5 mm of the table for 13 frames around, the
+  centre moving at least 3 cm/s; a parabola fitted to the centre's horizontal path over those 13 frames gives the
+  speed and the deceleration along the motion. Under Coulomb friction a box sliding flat decelerates at μ g (less
+  while it also spins). Reported in g by speed bin (median and interquartile range);
+- **the first impact**: the change of the centre's velocity across the toss's first contact (two-frame differences
+  at 3 frames before and 3 after, gravity's part removed): |Δv_tangential| / Δv_normal is the ratio of the tangential
+  to the normal impulse, at most μ, and equal to μ where the corner slides through the whole impact; and |Δω|, the
+  change of the angular velocity (world frame, from the rotations of the frames around) across the same frames.
+
+    python investigations/toss_friction.py data/CubeToss --split val
+"""
+
+from __future__ import annotations
+
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
+import argparse
+import json
+
+import numpy as np
+import torch
+
+from diffcontact.data import measured
+from diffcontact.eval.pose_metrics import box_vertices, rotate
+from diffcontact.eval.rollouts import predict
+from diffcontact.eval.tosses import recorded_tosses
+from diffcontact.models.model import known_model
+from diffcontact.systems.poses import matrix_to_quaternion, points_to_pose, quaternion_to_matrix, rotation_vector
+from diffcontact.systems.registry import build_task
+
+SPEED_BINS = (0.03, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8)  # m/s
+FLAT_MM, HALF_WINDOW = 1.5, 6
+
+
+def flat_sliding(position, quaternion, dt: float, table_height: float, half_extents) -> np.ndarray:
+    """(n, 2): speed (m/s) and deceleration along the motion (m/s²) of the flat-sliding frames of one toss."""
+    heights = (position[:, None] + rotate(quaternion, box_vertices(half_extents)))[..., 2] - table_height
+    flat = np.sort(heights, 1)[:, 3] < FLAT_MM * 1e-3
+    t = np.arange(-HALF_WINDOW, HALF_WINDOW + 1) * dt
+    X = np.stack([np.ones_like(t), t, 0.5 * t**2], 1)
+    out = []
+    for i in range(HALF_WINDOW, len(position) - HALF_WINDOW):
+        if not flat[i - HALF_WINDOW : i + HALF_WINDOW + 1].all():
+            continue
+        coef, *_ = np.linalg.lstsq(X, position[i - HALF_WINDOW : i + HALF_WINDOW + 1, :2], rcond=None)
+        speed = float(np.linalg.norm(coef[1]))
+        if speed >= SPEED_BINS[0]:
+            out.append((speed, -float(coef[2] @ coef[1]) / speed))
+    return np.array(out).reshape(-1, 2)
+
+
+def spin(quaternion, i: int, dt: float) -> np.ndarray:
+    """The world-frame angular velocity (3,) in rad/s over frames i − 1 … i + 1."""
+    R = quaternion_to_matrix(torch.from_numpy(quaternion[[i - 1, i + 1]]))
+    return rotation_vector(matrix_to_quaternion(R[1] @ R[0].mT)).numpy() / (2 * dt)
+
+
+def first_impact(position, quaternion, c: int, dt: float, gravity: float) -> tuple[float, float, float] | None:
+    """(|Δv_t| / Δv_n, Δv_n in m/s, |Δω| in rad/s) across the first contact at frame ``c``, or None near the ends."""
+    if c < 4 or c + 5 >= len(position):
+        return None
+    before = (position[c - 1] - position[c - 3]) / (2 * dt)
+    after = (position[c + 4] - position[c + 2]) / (2 * dt)
+    dn = after[2] - before[2] + gravity * 5 * dt
+    dw = np.linalg.norm(spin(quaternion, c + 3, dt) - spin(quaternion, c - 2, dt))
+    return float(np.linalg.norm(after[:2] - before[:2]) / dn), float(dn), float(dw)
+
+
+def summary(sliding: np.ndarray, ratios: np.ndarray, gravity: float) -> dict:
+    bins = {}
+    for lo, hi in zip(SPEED_BINS[:-1], SPEED_BINS[1:], strict=True):
+        d = sliding[(sliding[:, 0] >= lo) & (sliding[:, 0] < hi), 1] / gravity
+        if len(d):
+            q25, q50, q75 = np.percentile(d, [25, 50, 75])
+            bins[f"{lo}-{hi} m/s"] = {
+                "frames": len(d),
+                "median_g": round(q50, 3),
+                "iqr_g": [round(q25, 3), round(q75, 3)],
+            }
+    impacts = ratios[ratios[:, 1] > 0.5]  # (impacts of at least 0.5 m/s)
+    r = impacts[:, 0]
+    return {
+        "flat_sliding_deceleration": bins,
+        "first_impact_ratio": {
+            "impacts": len(r),
+            "median": round(float(np.median(r)), 3),
+            "p25_p75_p90": [round(float(v), 3) for v in np.percentile(r, [25, 75, 90])],
+            "spin_change_median_rad_s": round(float(np.median(impacts[:, 2])), 2),
+        },
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", help="an imported dataset folder (diffcontact import contactnets)")
+    parser.add_argument("--split", default="val")
+    parser.add_argument("--task", default="CubeToss")
+    parser.add_argument("--mu", type=float, default=None, help="the model's μ (default: the task file's)")
+    parser.add_argument("--e", type=float, default=None, help="the model's e (default: the task file's)")
+    parser.add_argument("--no-model", action="store_true", help="measure the recording only")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    tosses, request = recorded_tosses(args.data, args.split)
+    height, half = request["table_height_m"], request["half_extents_m"]
+    first_contact = measured.flight_frames(tosses, height, half)
+    gravity = measured.GRAVITY
+
+    def measure(poses) -> dict:
+        sliding, ratios = [], []
+        for i, (position, quaternion) in enumerate(poses):
+            sliding.append(flat_sliding(position, quaternion, tosses.dt, height, half))
+            ratio = first_impact(position, quaternion, first_contact[i], tosses.dt, gravity)
+            if ratio is not None:
+                ratios.append(ratio)
+        return summary(np.concatenate(sliding), np.array(ratios), gravity)
+
+    rows = [tosses.frames_of(i) for i in range(tosses.n)]
+    result = {"split": args.split, "tosses": tosses.n, "recorded": measure(
+        (tosses.position[r], tosses.quaternion[r]) for r in rows
+    )}  # fmt: skip
+    if not args.no_model:
+        overrides = {"contact": {k: [v] for k, v in (("mu", args.mu), ("cor", args.e)) if v is not None}}
+        task = build_task(args.task, overrides)
+        x, v = measured.tosses_to_points(tosses, height, half)
+        first = tosses.offsets[:-1]
+        x_hat, v_hat = predict(known_model(task), torch.from_numpy(x[first]), torch.from_numpy(v[first]), max(
+            int(n) for n in tosses.lengths
+        ))  # fmt: skip
+
+        def predicted():
+            for i, n in enumerate(tosses.lengths):
+                position, quaternion, _, _ = points_to_pose(x_hat[i, :n].double(), v_hat[i, :n].double())
+                yield position.numpy() + [0.0, 0.0, height], quaternion.numpy()
+
+        label = f"model mu {float(task.params.mu[0]):g} e {float(task.params.e[0]):g}"
+        result[label] = measure(predicted())
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
