@@ -18,6 +18,7 @@ from diffcontact.config import TaskConfig, load_task
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.models.params import E_TRANSFORMS, MU_TRANSFORMS, POTENTIALS
+from diffcontact.run_dir import CONFIG
 
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
 TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
@@ -127,7 +128,7 @@ class TrainConfig:
         return cls._make(task=ref, model=model, preset=preset, task_training=own, **settings, **given)
 
     @classmethod
-    def from_record(cls, args: dict, where: str | Path = "config.json") -> TrainConfig:
+    def from_record(cls, args: dict, where: str | Path = CONFIG) -> TrainConfig:
         """The settings a run recorded (config.json ``"args"``).  Settings added since a run was made take the
         value such runs trained with (``LATER_SETTINGS``); any other missing one is a ConfigError."""
         missing = [f.name for f in dataclasses.fields(cls) if f.name not in args and f.name not in LATER_SETTINGS]

@@ -24,7 +24,7 @@ from diffcontact.errors import ConfigError
 from diffcontact.files import TMP_PREFIX, atomic_write, save_figure, versions, write_json
 from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
-from diffcontact.run_dir import RunDir
+from diffcontact.run_dir import BEST_CHECKPOINT, REFINED_PREFIX, RunDir
 from diffcontact.solver.contact_solver import load_failed, save_failed
 from diffcontact.systems.registry import build_task
 from diffcontact.train.coef_start import scan_coefficients
@@ -182,13 +182,13 @@ def _resumed(run: RunDir, given: dict, epochs: int | None) -> tuple[TrainConfig,
     if not last.is_file() and not run.config.is_file():
         raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
     try:
-        recorded = json.loads(run.config.read_text())["args"]
+        recorded = run.read_config()["args"]
         done, trained = 0, {}  # (a run stopped before its first checkpoint starts again)
         if last.is_file():
             checkpoint = torch.load(last, map_location="cpu", weights_only=False)
             done = int(checkpoint["epoch"]) + 1
             trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
-    except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
+    except (ConfigError, OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
         raise ConfigError(
             f"--resume: {run.path} is not a readable training run ({run.config.name}, {last.name}): {err}"
         ) from err
@@ -283,7 +283,7 @@ def train_run(
         reg=reg, train_loss=train_loss, dtype=dtype, data_root=data_root, devices=devices, num_nodes=num_nodes,
     )  # fmt: skip
     name = load_task(task).name
-    run = RunDir(out if out else Path("runs") / name / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}")
+    run = RunDir(out) if out else RunDir.default(name, model or "CM-CD-CLNN", 0 if seed is None else seed)
     first = _rank(devices or 1) == 0  # (the process that writes: the only one before a DDP launch)
     with output_lock(run.path) if first else nullcontext():  # (one command at a time writes a run)
         config, done = _settings(run, task, model, preset, epochs, given, resume)
@@ -316,7 +316,7 @@ def train_run(
             if _save_failed(run, module.solver.failed):
                 summary["solver_failures_saved"] = run.solver_failures.name
             write_json(run.learned, summary)
-            plot_losses(run.path / "logs" / "csv", run.path / "loss.png")
+            plot_losses(run.csv_logs, run.loss_figure)
         return summary
 
 
@@ -400,7 +400,7 @@ def _refined(
     record |= {"kept": True, "seconds": time.perf_counter() - started}
     if not record["iterations"]:
         return record, best
-    path = folder / f"refined-{Path(best).name}"
+    path = folder / f"{REFINED_PREFIX}{Path(best).name}"
     if write:
         checkpoint = torch.load(best, map_location="cpu", weights_only=False)
         for key in ("mu_raw", "e_raw"):
@@ -486,13 +486,10 @@ def _trainer(
 ) -> tuple[pl.Trainer, _RunCheckpoint]:
     """The run's Lightning trainer (logs, atomic checkpoints every epoch, the best on val/loss, a stop after
     ``patience`` validations without a better val/loss if given) and its checkpoint callback."""
-    loggers = [
-        CSVLogger(run.path / "logs", name="csv"),
-        TensorBoardLogger(run.path / "logs", name="tb"),
-    ]
+    loggers = [CSVLogger(run.logs, name=run.csv_logs.name), TensorBoardLogger(run.logs, name=run.tb_logs.name)]
     checkpoints = _RunCheckpoint(
         dirpath=run.checkpoints,
-        filename="best-{epoch}",
+        filename=BEST_CHECKPOINT,
         monitor="val/loss",
         mode="min",
         save_top_k=1,
