@@ -1,6 +1,7 @@
 """RunDir: the one place that names a run's files, and its checks of what it reads."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -57,3 +58,18 @@ def test_metrics_and_times_of_an_unfinished_run_are_none(tmp_path):
     write_json(run.learned, {"wall_time_s": 12.0})
     assert run.metrics() == {"seconds": 4.5} and run.times() == (12.0, 4.5)
     assert json.loads(run.learned.read_text())["wall_time_s"] == 12.0
+
+
+def test_the_paths_of_a_run_keep_their_names(tmp_path):
+    """Runs on disk are read by these names: a change would orphan them."""
+    run = RunDir(tmp_path)
+    named = {
+        run.config: "config.json", run.learned: "learned.json", run.coef_start: "coef_start.json",
+        run.solver_failures: "solver_failures.npz", run.checkpoints: "checkpoints",
+        run.last_checkpoint: "checkpoints/last.ckpt", run.logs: "logs", run.csv_logs: "logs/csv",
+        run.tb_logs: "logs/tb", run.loss_figure: "loss.png", run.eval_dir(): "eval",
+        run.metrics_file(): "eval/metrics.json", run.metrics_file("eval_val"): "eval_val/metrics.json",
+        run.reproduce_record: "reproduce.json", run.reproduce_log: "reproduce.log",
+    }  # fmt: skip
+    assert {path: path.relative_to(tmp_path).as_posix() for path in named} == named
+    assert RunDir.default("BP5", "CM-CD-CLNN", 3).path == Path("runs/BP5/CM-CD-CLNN/seed3")

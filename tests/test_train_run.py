@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -354,6 +355,21 @@ def test_a_baseline_weighs_velocities_whatever_the_tasks_setting_for_the_contact
     px, pv = net(x, v, 2)
     assert torch.autograd.grad(px.sum(), net.jump[0].weight, allow_unused=True)[0] is None  # (positions: no gradient)
     assert torch.autograd.grad(pv.sum(), net.jump[0].weight)[0].abs().sum() > 0
+
+
+def test_an_unknown_setting_is_refused_by_name_before_anything_is_loaded(tmp_path, monkeypatch):
+    import diffcontact.train.run as run_module
+    from diffcontact.train.config import GIVEN_SETTINGS
+
+    def never(*args, **kwargs):
+        raise AssertionError("the task file was read before the settings were checked")
+
+    monkeypatch.setattr(run_module, "load_task", never)
+    allowed = re.escape(str(sorted(GIVEN_SETTINGS)))
+    with pytest.raises(ConfigError, match=rf"unknown training settings \['bacth_size'\]; allowed: {allowed}"):
+        train_run("BP1", out=tmp_path / "run", data_root=tmp_path / "nowhere", bacth_size=8, progress=False)
+    assert not (tmp_path / "run").exists()
+    assert "batch_size" in GIVEN_SETTINGS and "task" not in GIVEN_SETTINGS and "first_state_lr" not in GIVEN_SETTINGS
 
 
 def test_a_gpu_is_refused_with_its_reason(tmp_path):

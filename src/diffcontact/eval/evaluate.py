@@ -22,7 +22,7 @@ from diffcontact.eval.metrics import (
 from diffcontact.eval.rollouts import rollout_split
 from diffcontact.eval.tosses import evaluate_tosses, measured
 from diffcontact.files import save_npz, versions, write_json
-from diffcontact.run_dir import RunDir
+from diffcontact.run_dir import METRICS, ROLLOUT, ROLLOUT_GIF, RunDir
 
 METRICS_VERSION = 2  # 2: energy deviation relative to the energy in motion (1: to |E(z_0)|)
 STEPS = 5  # frames of the Fig. 3 error (0 … 4: the training horizon)
@@ -62,7 +62,8 @@ def evaluate_run(
     if measured(folder):  # (recorded tosses: whole tosses from their first state, scored in the field's metrics)
         record = {"task": name, "model": loaded.model_name, "run_dir": str(run), "checkpoint": str(loaded.checkpoint)}
         record |= {"learned": _learned(run), "config": loaded.config}
-        return evaluate_tosses(loaded.net, folder, out or run / "eval", split, pictures, on_solver_failure, **record)
+        out = out or RunDir(run).eval_dir()
+        return evaluate_tosses(loaded.net, folder, out, split, pictures, on_solver_failure, **record)
     if frames is None:
         from diffcontact.data.store import load_meta
 
@@ -107,19 +108,19 @@ def evaluate_run(
         "config": loaded.config,
         "versions": versions(),
     }
-    out = Path(out or run / "eval")
+    out = Path(out or RunDir(run).eval_dir())
     out.mkdir(parents=True, exist_ok=True)
     dts = {name: ro.dt}
     plots.error_curves({name: {loaded.model_name: metrics["error_curve"]}}, dts, out / "error.png")
     truth, pred = metrics["energy"]["shown_true"], metrics["energy"]["shown_predicted"]
     plots.energy_panels({name: {"truth": truth, loaded.model_name: pred}}, dts, out / "energy.png")
-    save_npz(out / "rollout.npz", x=ro.x[shown].numpy(), x_hat=ro.x_hat[shown].numpy(), contact=ro.contact[shown])
+    save_npz(out / ROLLOUT, x=ro.x[shown].numpy(), x_hat=ro.x_hat[shown].numpy(), contact=ro.contact[shown])
     if pictures:
         system, xs, xh, hit = loaded.task.system, ro.x[shown].numpy(), ro.x_hat[shown].numpy(), ro.contact[shown]
         animate.rollout_strip(system, {"truth": xs, loaded.model_name: xh}, hit.numpy(), out / "rollout.png", ro.dt)
-        animate.compare_gif(system, xs, xh, hit.numpy(), out / "rollout.gif", ro.dt)
+        animate.compare_gif(system, xs, xh, hit.numpy(), out / ROLLOUT_GIF, ro.dt)
     metrics["seconds"] = time.perf_counter() - started  # (the evaluation's wall time, pictures included)
-    write_json(out / "metrics.json", metrics)  # (last: its presence marks a finished evaluation)
+    write_json(out / METRICS, metrics)  # (last: its presence marks a finished evaluation)
     return metrics
 
 

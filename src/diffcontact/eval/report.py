@@ -18,7 +18,7 @@ from diffcontact.eval import published
 from diffcontact.eval.evaluate import evaluated
 from diffcontact.files import write_text
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
-from diffcontact.run_dir import RunDir
+from diffcontact.run_dir import ROLLOUT, ROLLOUT_GIF, RunDir
 
 HOMOGENEOUS = ("BP5-e", "CP3-e", "CP3", "Rope", "Gyro-e", "Gyro")
 
@@ -27,7 +27,7 @@ def _status(out: Path, task: str, model: str, seed: int) -> str:
     """What became of a cell without metrics: missing (no way to train the model), failed (with why) or not run."""
     run = RunDir.of_cell(out, task, model, seed)
     try:
-        record = json.loads((run.path / "reproduce.json").read_text())
+        record = json.loads(run.reproduce_record.read_text())
     except (OSError, ValueError):
         record = {}
     if record.get("status") == "failed":
@@ -311,7 +311,7 @@ def _rollouts(out, tasks, models, seed, first, missing, figures) -> list[str]:
             v = first[t, m]
             if not v:
                 continue
-            with np.load(RunDir.of_cell(out, t, m, seed).eval_dir() / "rollout.npz") as arrays:
+            with np.load(RunDir.of_cell(out, t, m, seed).eval_dir() / ROLLOUT) as arrays:
                 if contact is None:
                     rows["truth"], contact, dt = arrays["x"], arrays["contact"], v["dt"]
                 rows[m] = arrays["x_hat"]
@@ -323,7 +323,7 @@ def _rollouts(out, tasks, models, seed, first, missing, figures) -> list[str]:
             lines += [f"![{t}](figures/rollout_{t}.png)", ""]
         for m in models:
             v = first[t, m]
-            gif = RunDir.of_cell(out, t, m, seed).eval_dir() / "rollout.gif" if v else None
+            gif = RunDir.of_cell(out, t, m, seed).eval_dir() / ROLLOUT_GIF if v else None
             if gif and gif.is_file():
                 lines.append(f"- {m}: [truth beside prediction (GIF)]({os.path.relpath(gif, out)})")
             else:

@@ -93,14 +93,15 @@ def run_cell(cell: Cell, data: Path, quick: bool, threads: int = 1) -> dict:
         cmd += ["--batch-size", str(QUICK["batch_size"]), "--frames", str(QUICK["eval_frames"])]
     cell.run.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    with open(cell.run / "reproduce.log", "a") as log:
+    run = RunDir(cell.run)
+    with open(run.reproduce_log, "a") as log:
         log.write(f"$ {' '.join(cmd)}\n")
         log.flush()
         code = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
     record = {"status": "done" if code == 0 else "failed", "seconds": time.perf_counter() - t0}
     if code:
-        record["error"] = f"exited with {code}; see {cell.run / 'reproduce.log'}"
-    write_json(cell.run / "reproduce.json", record)
+        record["error"] = f"exited with {code}; see {run.reproduce_log}"
+    write_json(run.reproduce_record, record)
     return record
 
 

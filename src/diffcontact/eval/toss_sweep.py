@@ -21,7 +21,7 @@ from diffcontact.errors import DiffContactError
 from diffcontact.eval.backends import Backend
 from diffcontact.files import versions, write_json, write_text
 from diffcontact.run_dir import METRICS as METRICS_FILE
-from diffcontact.run_dir import RunDir
+from diffcontact.run_dir import PREDICTIONS, RunDir
 
 SIZES = (8, 16, 32, 64, 128, 256)
 METHODS = ("CM-CD-CLNN", "CMr-CD-CLNN", "MLP-CD-CLNN", "IN-CP-CLNN", "mujoco", "bullet", "nominal")
@@ -71,7 +71,7 @@ def _cell(
 
     run, _ = _folders(out, method, n)
     if method == "nominal":
-        evaluate_nominal(task, folder, run / "eval", pictures=False)
+        evaluate_nominal(task, folder, RunDir(run).eval_dir(), pictures=False)
     elif method in PEERS:
         from diffcontact.peers.fit import run_fit
 
@@ -174,7 +174,7 @@ def _paired(out: Path, folder: Path, methods, n: int | None) -> dict[str, dict]:
     tosses, request = recorded_tosses(folder, "test")
     errors = {}
     for method in methods:
-        with np.load(_folders(out, method, n)[1] / "predictions.npz") as predicted:
+        with np.load(_folders(out, method, n)[1] / PREDICTIONS) as predicted:
             if not np.array_equal(predicted["toss_id"], tosses.toss_id):
                 raise DiffContactError(f"{method} at N = {n} was scored on other test tosses than {folder}")
             position = predicted["position"]

@@ -22,6 +22,7 @@ from diffcontact.errors import DatasetError
 from diffcontact.eval.pose_metrics import box_toss_metrics
 from diffcontact.eval.rollouts import predict
 from diffcontact.files import save_arrays, versions, write_json
+from diffcontact.run_dir import METRICS, PREDICTIONS
 from diffcontact.systems.poses import points_to_pose
 
 if TYPE_CHECKING:
@@ -123,7 +124,7 @@ def evaluate_tosses(
     metrics = score_tosses(predicted, folder, split)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    save_arrays(out / "predictions.npz", predicted)
+    save_arrays(out / PREDICTIONS, predicted)
     tosses, request = recorded_tosses(folder, split)
     draw_tosses(tosses, predicted, out / "tosses.png", request["table_height_m"])
     if pictures:
@@ -144,7 +145,7 @@ def evaluate_tosses(
         "versions": versions(),
         "seconds": round(time.perf_counter() - started, 3),
     }
-    write_json(out / "metrics.json", metrics)  # (last: its presence marks a finished evaluation)
+    write_json(out / METRICS, metrics)  # (last: its presence marks a finished evaluation)
     return metrics
 
 

@@ -50,21 +50,22 @@ def main(argv: list[str] | None = None) -> int:
     from diffcontact.train.run import train_run
 
     die_with_parent()
+    run = RunDir(args.run)
     try:
-        if args.train and RunDir(args.run).learned.is_file():  # (a retry after the training ended: never twice)
+        if args.train and run.learned.is_file():  # (a retry after the training ended: never twice)
             print(f"{args.run}: trained already (learned.json); evaluating only", flush=True)
         elif args.train:
             settings = dict(
                 seed=args.seed, out=args.run, data_root=args.data, epochs=args.epochs, batch_size=args.batch_size
             )
-            last = RunDir(args.run).last_checkpoint
+            last = run.last_checkpoint
             if last.is_file():
                 try:  # (only a checkpoint that does not load is thrown away: an error in training is not)
                     torch.load(last, map_location="cpu", weights_only=False)
                 except Exception as err:  # (damaged by the interruption: train afresh)
                     print(f"{last} does not load ({type(err).__name__}: {err}); training from the start", flush=True)
-                    for part in ("checkpoints", "logs"):  # (a fresh run is refused beside another run's checkpoints)
-                        shutil.rmtree(args.run / part, ignore_errors=True)
+                    for part in (run.checkpoints, run.logs):  # (a fresh run is refused beside another's checkpoints)
+                        shutil.rmtree(part, ignore_errors=True)
             train_run(args.task, args.model, resume=last.is_file(), progress=False, **settings)
         m = evaluate_run(
             args.run, task=args.task, data_root=args.data, frames=args.frames, pictures=not args.no_pictures

@@ -30,6 +30,7 @@ from diffcontact.eval.pose_metrics import box_toss_metrics
 from diffcontact.files import save_arrays, versions, write_json
 from diffcontact.peers import ENGINES, load_engine, require
 from diffcontact.peers.cube import GRAVITY, HALF_EXTENT, INERTIA, MASS, SUBSTEPS, Param, nominal
+from diffcontact.run_dir import METRICS, PREDICTIONS
 
 ROTATION_WEIGHT = 50.0 * math.pi / 180.0  # % of the width per degree
 FAILED = 1e3  # objective of a rollout that is not finite
@@ -199,9 +200,9 @@ def run_fit(
         "versions": versions(**{p: metadata.version(p) for p in (ENGINES[engine_name], "cma")}),
     }
     write_json(out / "fitted.json", fitted)
-    write_json(out / "metrics.json", metrics)
+    write_json(out / METRICS, metrics)  # (named as an evaluation's: the toss sweep reads both alike)
     save_arrays(
-        out / "predictions.npz",
+        out / PREDICTIONS,
         {"position": position, "quaternion": quaternion, "offsets": test.offsets, "toss_id": test.toss_id},
     )
     return metrics

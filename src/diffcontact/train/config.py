@@ -18,6 +18,7 @@ from diffcontact.config import TaskConfig, load_task
 from diffcontact.errors import ConfigError
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.models.params import E_TRANSFORMS, MU_TRANSFORMS, POTENTIALS
+from diffcontact.run_dir import CONFIG
 
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
 TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
@@ -49,7 +50,7 @@ class TrainConfig:
     mu_coef_lr: float | None = None  # (μ's own, where given)
     mu_l1: float = 0.0  # a constant pull of every μ toward 0
     reg: float | None = None
-    train_loss: str = "l1"
+    train_loss: str = "l1"  # "l1" (the paper's) or "mse" (a deviation measured for the baselines, docs/baselines.md)
     potential: str = "mlp"  # "mlp" (the paper's learned network), "linked" (plus one per link), "gravity" or "known"
     velocity_weight: float = 1.0  # of the velocities in the loss, against the positions
     moments_init: float = 1.0  # m² per unit mass: where the learned second moments start (about the bodies' size²)
@@ -107,11 +108,14 @@ class TrainConfig:
             raise ConfigError(f"data_root = {self.data_root!r} must be a path and task_training a table")
 
     @classmethod
-    def resolve(cls, task: str | Path, model: str | None = None, preset: str | None = None, **given) -> TrainConfig:
-        """The settings of a new run of ``model`` (default CM-CD-CLNN) on ``task``: ``preset`` (default "default"),
-        then the task file's ``[training]`` table (default preset only), then ``given`` where not None."""
+    def resolve(
+        cls, task: str | Path | TaskConfig, model: str | None = None, preset: str | None = None, **given
+    ) -> TrainConfig:
+        """The settings of a new run of ``model`` (default CM-CD-CLNN) on ``task`` (its name, its file's path or
+        the ``TaskConfig`` parsed from it): ``preset`` (default "default"), then the task file's ``[training]``
+        table (default preset only), then ``given`` where not None."""
         model, preset = model or "CM-CD-CLNN", preset or "default"
-        config = load_task(task)  # (parsed once: its reference, and its [training] table)
+        config = task if isinstance(task, TaskConfig) else load_task(task)  # (its reference, its [training] table)
         ref = config.ref  # (a packaged task's name, or a task file's path as found from anywhere)
         own = task_training(config) if preset == "default" else {}
         chosen = {k: given.pop(k) for k in PRESET_SETTINGS if k in given}
@@ -127,7 +131,7 @@ class TrainConfig:
         return cls._make(task=ref, model=model, preset=preset, task_training=own, **settings, **given)
 
     @classmethod
-    def from_record(cls, args: dict, where: str | Path = "config.json") -> TrainConfig:
+    def from_record(cls, args: dict, where: str | Path = CONFIG) -> TrainConfig:
         """The settings a run recorded (config.json ``"args"``).  Settings added since a run was made take the
         value such runs trained with (``LATER_SETTINGS``); any other missing one is a ConfigError."""
         missing = [f.name for f in dataclasses.fields(cls) if f.name not in args and f.name not in LATER_SETTINGS]
@@ -199,12 +203,23 @@ PRESETS = {
 # The settings of the Lightning module's that belong to the run instead.
 RUN_ONLY = ("preset", "epochs", "batch_size", "min_steps", "coef_start", "data_root", "task_training", "devices",
             "num_nodes")  # fmt: skip
+# The settings a caller gives a run (``train.run.train_run``'s keyword arguments): all but the task and the model
+# (given apart) and those the run derives from the task file and the dataset.
+DERIVED = ("task", "model", "task_training", "first_state_chunks", "first_state_val_chunks", "first_state_lr")
+GIVEN_SETTINGS = tuple(sorted(f.name for f in dataclasses.fields(TrainConfig) if f.name not in DERIVED))
 # Settings added after runs were made, and the value those runs trained with (for resuming them).
 LATER_SETTINGS = dict(
     train_loss="l1", devices=1, num_nodes=1, mu_l1=0.0, potential="mlp", velocity_weight=1.0, moments_init=1.0,
     axis_scale=1.0, min_steps=0, coef_start="random", hidden=256, layers=3, task_training={}, first_state_chunks=0,
     first_state_val_chunks=0, first_state_lr=0.0,
 )  # fmt: skip
+
+
+def check_given(settings: dict) -> None:
+    """ConfigError naming the settings that are not ``GIVEN_SETTINGS`` (listed, sorted), if any."""
+    unknown = sorted(set(settings) - set(GIVEN_SETTINGS))
+    if unknown:
+        raise ConfigError(f"unknown training settings {unknown}; allowed: {list(GIVEN_SETTINGS)}")
 
 
 def resolve_preset(preset: str, task_settings: dict | None = None, **given) -> dict:

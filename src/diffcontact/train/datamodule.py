@@ -8,7 +8,7 @@ import lightning.pytorch as pl
 import torch
 from torch.utils.data import DataLoader
 
-from diffcontact.config import load_task
+from diffcontact.config import TaskConfig, load_task
 from diffcontact.data.dataset import ChunkDataset, PairDataset, TrajectoryDataset
 from diffcontact.data.store import SPLITS, Split, dataset_folder, load_split
 from diffcontact.errors import ConfigError
@@ -24,7 +24,7 @@ class ContactDataModule(pl.LightningDataModule):
 
     def __init__(
         self,
-        task: str,
+        task: str | TaskConfig,
         root: str | Path = "data",
         batch_size: int = 200,
         mode: str = "chunks",
@@ -37,7 +37,8 @@ class ContactDataModule(pl.LightningDataModule):
             raise ConfigError(f"mode = {mode!r} is not one of {list(MODES)}")
         if batch_size < 1:
             raise ConfigError(f"batch_size = {batch_size} is not >= 1")
-        self.config = load_task(task)  # (a packaged task's name or a task file's path: its data are in root/NAME)
+        # (a packaged task's name, a task file's path or the config parsed from it: its data are in root/NAME)
+        self.config = task if isinstance(task, TaskConfig) else load_task(task)
         self.folder = dataset_folder(root, self.config.name)
         self.batch_size, self.mode, self.dtype = batch_size, mode, dtype
         self.seed, self.num_workers = seed, num_workers

@@ -33,6 +33,7 @@ from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from diffcontact.models import BASELINE_NAMES, LearnedParams, build_model
 from diffcontact.solver import ContactSolver, Status
 from diffcontact.solver.status import is_failure
+from diffcontact.systems.base import Task
 from diffcontact.systems.registry import build_task
 from diffcontact.train.config import TrainConfig
 from diffcontact.train.first_states import FirstStates
@@ -73,14 +74,17 @@ class ContactLightningModule(pl.LightningModule):
     """Trains ``model`` (one of ``diffcontact.models.MODEL_NAMES``) on the chunks of ``task``, or a baseline
     (``BASELINE_NAMES``) on their one-step pairs (batches of ``PairDataset``)."""
 
-    def __init__(self, task: str, model: str = "CM-CD-CLNN", **settings):
-        """``settings``: those of :meth:`TrainConfig.module_settings` (the default preset's where not given)."""
+    def __init__(self, task: str, model: str = "CM-CD-CLNN", *, built_task: Task | None = None, **settings):
+        """``settings``: those of :meth:`TrainConfig.module_settings` (the default preset's where not given).
+        ``built_task``: ``task`` already built (``build_task``, by a caller that has parsed the task file), used
+        instead of building it again; not a hyperparameter (a checkpoint records ``task``, which builds it)."""
         super().__init__()
         quiet_lightning()  # (the module is what brings Lightning in: its notices are quieted wherever it is used)
         self.config = TrainConfig(task=task, model=model, **settings)
-        self.save_hyperparameters()  # (task, model and the settings given: what load_from_checkpoint passes back)
+        # (task, model and the settings given: what load_from_checkpoint passes back)
+        self.save_hyperparameters(ignore=["built_task"])
         self.automatic_optimization = False
-        self.task = build_task(task)
+        self.task = build_task(task) if built_task is None else built_task
         # (continues with zero impulses, counts and logs failures, and keeps the first ones: RUN/solver_failures.npz)
         self.solver = ContactSolver(on_failure="count", keep=KEEP_FAILED)
         self._failures_before: Counter[str] = Counter()  # (restored from a checkpoint)

@@ -17,18 +17,18 @@ from lightning.pytorch.plugins import TorchCheckpointIO
 from lightning.pytorch.strategies import DDPStrategy
 from lightning.pytorch.utilities import rank_zero_info
 
-from diffcontact.config import load_task
+from diffcontact.config import TaskConfig, load_task
 from diffcontact.data.noise import noise_kind
 from diffcontact.data.store import load_meta
 from diffcontact.errors import ConfigError
 from diffcontact.files import TMP_PREFIX, atomic_write, save_figure, versions, write_json
 from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
-from diffcontact.run_dir import RunDir
+from diffcontact.run_dir import BEST_CHECKPOINT, REFINED_PREFIX, RunDir
 from diffcontact.solver.contact_solver import load_failed, save_failed
 from diffcontact.systems.registry import build_task
 from diffcontact.train.coef_start import scan_coefficients
-from diffcontact.train.config import TrainConfig
+from diffcontact.train.config import TrainConfig, check_given
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.identify import refine
 from diffcontact.train.module import KEEP_FAILED, ContactLightningModule, quiet_lightning
@@ -177,18 +177,23 @@ def _resumed(run: RunDir, given: dict, epochs: int | None) -> tuple[TrainConfig,
     """The recorded settings of the run in ``run``, with ``epochs`` where given, and the epochs it has trained:
     raises ConfigError if the run has no checkpoint or config, or if a ``given`` setting (not None) differs from the
     recorded one.  (Whether the epochs planned are fewer than those trained is known only with the data:
-    ``min_steps``.)"""
+    ``min_steps``.)
+
+    ``train_run(..., resume=True)`` continues from checkpoints/last.ckpt with these settings (``epochs`` may grow
+    with a constant schedule); the result is the same as a run that was not interrupted, also after a SIGKILL at
+    any moment (checkpoints are written atomically, ``_AtomicCheckpointIO``, the batch order is restored,
+    ``_ShuffleState``; a run stopped before its first checkpoint starts again from its config)."""
     last = run.last_checkpoint
     if not last.is_file() and not run.config.is_file():
         raise ConfigError(f"--resume: no checkpoint to resume from at {last}")
     try:
-        recorded = json.loads(run.config.read_text())["args"]
+        recorded = run.read_config()["args"]
         done, trained = 0, {}  # (a run stopped before its first checkpoint starts again)
         if last.is_file():
             checkpoint = torch.load(last, map_location="cpu", weights_only=False)
             done = int(checkpoint["epoch"]) + 1
             trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
-    except (OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
+    except (ConfigError, OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
         raise ConfigError(
             f"--resume: {run.path} is not a readable training run ({run.config.name}, {last.name}): {err}"
         ) from err
@@ -225,81 +230,44 @@ def _rank(devices: int) -> int:
 
 
 def train_run(
-    task: str,
+    task: str | Path,
     model: str | None = None,
     *,
-    preset: str | None = None,
-    epochs: int | None = None,
-    seed: int | None = None,
     out: str | Path | None = None,
-    data_root: str | Path | None = None,
-    batch_size: int | None = None,
-    lr: float | None = None,
-    schedule: str | None = None,
-    weight_decay: float | None = None,
-    mu_transform: str | None = None,
-    e_transform: str | None = None,
-    coef_lr: float | None = None,
-    mu_coef_lr: float | None = None,
-    mu_l1: float | None = None,
-    reg: float | None = None,
-    train_loss: str | None = None,
-    dtype: str | None = None,
-    devices: int | None = None,
-    num_nodes: int | None = None,
-    accelerator: str = "cpu",
     resume: bool = False,
     progress: bool = True,
+    accelerator: str = "cpu",
+    **settings,
 ) -> dict:
-    """Train ``model`` (default CM-CD-CLNN) on the generated dataset of ``task`` (in ``data_root``, default
-    data/) into ``out`` (default runs/<task>/<model>/seed<seed>, seed 0 by default).
+    """Train ``model`` (default CM-CD-CLNN) on the generated dataset of ``task`` (a packaged task's name or a task
+    file's path) into the run directory ``out`` (default runs/<task>/<model>/seed<seed>; its files:
+    :mod:`diffcontact.run_dir`), or with ``resume`` continue the run there (:func:`_resumed`).
 
-    ``preset`` names the training settings (``train.config.PRESETS``, default "default"), which the task file's
-    ``[training]`` table adjusts for the default preset; ``epochs``, ``lr``, ``schedule``, ``batch_size``, the
-    transforms and the rates override them where given (weight decay 1e-4 and float32 by default): one
-    :class:`~diffcontact.train.config.TrainConfig`, validated once and written to config.json.
-    ``train_loss`` ("l1", the paper's and the default, or "mse", a deviation measured for the baselines in
-    docs/baselines.md) is the training loss; val/loss, which selects the checkpoint, is always L1.
-
-    The run directory holds config.json (arguments and versions), checkpoints/ (best on val/loss and last.ckpt,
-    every epoch), logs/ (CSV and TensorBoard), learned.json and loss.png (the loss curves).  A directory that
-    already holds checkpoints is refused unless ``resume``, which continues from checkpoints/last.ckpt with the
-    run's recorded settings: a setting given here must equal the recorded one (``epochs`` may grow with a constant
-    schedule); the result is the same as a run that was not interrupted, also after a SIGKILL at any moment
-    (checkpoints are written atomically; a run stopped before its first checkpoint starts again from its config).
-    ``devices`` processes on each of ``num_nodes`` machines (default 1 and 1; recorded, as the batch) train with
-    Lightning's DDP strategy (gloo between CPU processes; ``accelerator`` "cpu", the only one so far): ``batch_size``
-    is the batch of each process, the effective batch is batch_size × devices × num_nodes, and the learning rate is
-    not scaled with it (all three are logged and recorded in config.json).  Only the first process writes the
-    files; the counters are summed over the processes (``ContactLightningModule.totals``).  docs/scaling.md.
+    ``settings`` are those of :class:`~diffcontact.train.config.TrainConfig` (``seed``, ``epochs``, ``lr``,
+    ``data_root``, ``devices`` ...: each documented there, their defaults by the preset, ``train.config.PRESETS``,
+    and the task file's ``[training]`` table: :meth:`TrainConfig.resolve`); a setting given None is not given; an
+    unknown one is a ConfigError.  ``devices`` × ``num_nodes`` processes train with DDP on ``accelerator`` ("cpu",
+    the only one so far: :func:`_trainer`).  ``progress``: Lightning's progress bar.
 
     Returns the learned summary (on the other processes of a DDP run: the same, not written).
     """
-    _check_launch(accelerator, devices, num_nodes)
+    check_given(settings)
+    _check_launch(accelerator, settings.get("devices"), settings.get("num_nodes"))
     quiet_lightning()
-    given = dict(
-        seed=seed, batch_size=batch_size, lr=lr, schedule=schedule, weight_decay=weight_decay,
-        mu_transform=mu_transform, e_transform=e_transform, coef_lr=coef_lr, mu_coef_lr=mu_coef_lr, mu_l1=mu_l1,
-        reg=reg, train_loss=train_loss, dtype=dtype, data_root=data_root, devices=devices, num_nodes=num_nodes,
-    )  # fmt: skip
-    name = load_task(task).name
-    run = RunDir(out if out else Path("runs") / name / (model or "CM-CD-CLNN") / f"seed{0 if seed is None else seed}")
-    first = _rank(devices or 1) == 0  # (the process that writes: the only one before a DDP launch)
+    parsed = load_task(task)  # (the task file, parsed once for the whole run)
+    seed = 0 if settings.get("seed") is None else settings["seed"]
+    run = RunDir(out) if out else RunDir.default(parsed.name, model or "CM-CD-CLNN", seed)
+    first = _rank(settings.get("devices") or 1) == 0  # (the process that writes: the only one before a DDP launch)
     with output_lock(run.path) if first else nullcontext():  # (one command at a time writes a run)
-        config, done = _settings(run, task, model, preset, epochs, given, resume)
-        data = _data(config)
+        config, done = _settings(run, parsed, model, settings, resume)
+        data = _data(config, parsed)
         if not done:  # (a new run: its first states learned or not, from what the dataset records)
             config = config.replace(**first_state_settings(config, data))
-        max_epochs = planned_epochs(config.epochs, config.min_steps, data.batches_per_epoch(config.processes))
-        if resume and max_epochs < done:
-            raise ConfigError(
-                f"--resume: epochs = {config.epochs} (planned: {max_epochs}) is fewer than the {done} epochs the run "
-                "has trained"
-            )
+        max_epochs = _planned(config, data, done)
         _record(run, config, accelerator, first)
         started = time.perf_counter()
         pl.seed_everything(config.seed, workers=True)
-        module = ContactLightningModule(**config.module_settings())
+        module = ContactLightningModule(**config.module_settings(), built_task=build_task(parsed))
         start = run.last_checkpoint if resume and run.last_checkpoint.is_file() else None
         patience = stop_patience(data.folder, config)
         trainer, checkpoints = _trainer(run, config, max_epochs, start, progress, accelerator, first, patience)
@@ -313,11 +281,28 @@ def train_run(
             summary["early_stop"] = {"patience": patience, "stopped": stopped, "planned_epochs": max_epochs}
         summary["run_dir"] = str(run.path)
         if trainer.is_global_zero:
-            if _save_failed(run, module.solver.failed):
-                summary["solver_failures_saved"] = run.solver_failures.name
-            write_json(run.learned, summary)
-            plot_losses(run.path / "logs" / "csv", run.path / "loss.png")
+            _write_finished(run, summary, module.solver.failed)
         return summary
+
+
+def _planned(config: TrainConfig, data: ContactDataModule, done: int) -> int:
+    """The epochs the run plans (``planned_epochs``); ConfigError if fewer than the ``done`` it has trained."""
+    max_epochs = planned_epochs(config.epochs, config.min_steps, data.batches_per_epoch(config.processes))
+    if max_epochs < done:
+        raise ConfigError(
+            f"--resume: epochs = {config.epochs} (planned: {max_epochs}) is fewer than the {done} epochs the run "
+            "has trained"
+        )
+    return max_epochs
+
+
+def _write_finished(run: RunDir, summary: dict, failed: list[dict]) -> None:
+    """The files of a finished training (the first process): solver_failures.npz (``_save_failed``, named in the
+    summary), learned.json (the summary: written last of the run's records) and loss.png (``plot_losses``)."""
+    if _save_failed(run, failed):
+        summary["solver_failures_saved"] = run.solver_failures.name
+    write_json(run.learned, summary)
+    plot_losses(run.csv_logs, run.loss_figure)
 
 
 def _save_failed(run: RunDir, problems: list[dict]) -> bool:
@@ -343,10 +328,10 @@ def _check_launch(accelerator: str, devices: int | None, num_nodes: int | None) 
             raise ConfigError(f"{key} = {value!r} is not an integer >= 1")
 
 
-def _data(config: TrainConfig) -> ContactDataModule:
-    """The run's dataset: 5-frame chunks, or one-step pairs for the baselines."""
+def _data(config: TrainConfig, task: TaskConfig | None = None) -> ContactDataModule:
+    """The run's dataset: 5-frame chunks, or one-step pairs for the baselines (``task``: ``config.task`` parsed)."""
     return ContactDataModule(
-        config.task,
+        config.task if task is None else task,
         root=config.data_root,
         batch_size=config.batch_size,
         mode="pairs" if config.model in BASELINE_NAMES else "chunks",
@@ -357,12 +342,14 @@ def _data(config: TrainConfig) -> ContactDataModule:
 
 def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, processes: int) -> dict:
     """The summary of a fitted run: what its best checkpoint learned (``_summary``), the checkpoint and the
-    counters summed over the processes (every process calls this)."""
+    counters summed over the processes (``ContactLightningModule.totals``; every process calls this, only the first
+    writes the files)."""
     totals = module.totals()
     if trainer.world_size > 1:
         best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
     # (the best checkpoint is in this run's folder, also when the folder was moved: _RunCheckpoint)
-    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu") if best else module
+    built = build_task(data.config) if best else None  # (afresh, from the task file as the run parsed it)
+    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu", built_task=built) if best else module
     split, noise = data.splits["train"], recorded_noise(data.folder)
     train = chosen.as_fitted("train", split.chunk_x, split.chunk_v)
     val, write = data.splits["val"], trainer.is_global_zero
@@ -400,7 +387,7 @@ def _refined(
     record |= {"kept": True, "seconds": time.perf_counter() - started}
     if not record["iterations"]:
         return record, best
-    path = folder / f"refined-{Path(best).name}"
+    path = folder / f"{REFINED_PREFIX}{Path(best).name}"
     if write:
         checkpoint = torch.load(best, map_location="cpu", weights_only=False)
         for key in ("mu_raw", "e_raw"):
@@ -410,12 +397,15 @@ def _refined(
 
 
 def _settings(
-    run: RunDir, task, model, preset, epochs: int | None, given: dict, resume: bool
+    run: RunDir, task: TaskConfig, model: str | None, settings: dict, resume: bool
 ) -> tuple[TrainConfig, int]:
-    """The run's settings and the epochs it has trained: a new run's, resolved (refused beside another run's
-    checkpoints), or a resumed run's, as recorded."""
+    """The run's settings and the epochs it has trained: a new run's, resolved from ``task`` (parsed) and the
+    ``settings`` given (``TrainConfig.resolve``; refused beside another run's checkpoints), or with ``resume`` a
+    resumed run's, as recorded (``_resumed``)."""
+    given = dict(settings)
+    preset, epochs = given.pop("preset", None), given.pop("epochs", None)
     if resume:
-        return _resumed(run, dict(task=load_task(task).ref, model=model, preset=preset, **given), epochs)
+        return _resumed(run, dict(task=task.ref, model=model, preset=preset, **given), epochs)
     if run.checkpoints.is_dir() and any(run.checkpoints.glob("*.ckpt")):
         raise ConfigError(
             f"{run.checkpoints} already holds the checkpoints of a run: continue it with --resume, or train into "
@@ -466,7 +456,7 @@ def first_state_settings(config: TrainConfig, data: ContactDataModule) -> dict:
     coordinates: balls, the rope); none otherwise (docs/training.md, "Noisy data": on the chain pendulum, its
     corrected first states projected back onto the constraints, they made μ, e and the 5-step error worse)."""
     noise = recorded_noise(data.folder)
-    free = noise_kind(build_task(config.task).system) == "free"
+    free = noise_kind(build_task(data.config).system) == "free"  # (the task as parsed by ``data``)
     if not noise * FIRST_STATE_LR or config.model not in MODEL_NAMES or not free:
         return {"first_state_chunks": 0, "first_state_val_chunks": 0, "first_state_lr": 0.0}
     data.setup()
@@ -485,14 +475,17 @@ def _trainer(
     patience: int | None = None,
 ) -> tuple[pl.Trainer, _RunCheckpoint]:
     """The run's Lightning trainer (logs, atomic checkpoints every epoch, the best on val/loss, a stop after
-    ``patience`` validations without a better val/loss if given) and its checkpoint callback."""
-    loggers = [
-        CSVLogger(run.path / "logs", name="csv"),
-        TensorBoardLogger(run.path / "logs", name="tb"),
-    ]
+    ``patience`` validations without a better val/loss if given) and its checkpoint callback.
+
+    ``config.devices`` processes on each of ``config.num_nodes`` machines (default 1 and 1) train with Lightning's
+    DDP strategy (gloo between CPU processes; ``accelerator`` "cpu", the only one so far): ``batch_size`` is the
+    batch of each process, the effective batch is batch_size × devices × num_nodes, and the learning rate is not
+    scaled with it (all three are logged and recorded in config.json: ``_record``).  Only the first process
+    (``first``) writes the files.  docs/scaling.md."""
+    loggers = [CSVLogger(run.logs, name=run.csv_logs.name), TensorBoardLogger(run.logs, name=run.tb_logs.name)]
     checkpoints = _RunCheckpoint(
         dirpath=run.checkpoints,
-        filename="best-{epoch}",
+        filename=BEST_CHECKPOINT,
         monitor="val/loss",
         mode="min",
         save_top_k=1,
