@@ -28,11 +28,17 @@ import numpy as np
 import torch
 
 from diffcontact.data import measured
-from diffcontact.eval.pose_metrics import box_vertices, rotate
 from diffcontact.eval.rollouts import predict
 from diffcontact.eval.tosses import recorded_tosses
 from diffcontact.models.model import known_model
-from diffcontact.systems.poses import matrix_to_quaternion, points_to_pose, quaternion_to_matrix, rotation_vector
+from diffcontact.systems.poses import (
+    box_vertices,
+    matrix_to_quaternion,
+    points_to_pose,
+    quaternion_to_matrix,
+    rotate,
+    rotation_vector,
+)
 from diffcontact.systems.registry import build_task
 
 SPEED_BINS = (0.03, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8)  # m/s

@@ -13,9 +13,10 @@ import pytest
 
 from diffcontact.data.tosses import CONTACTNETS_DT, Tosses
 from diffcontact.errors import ConfigError
-from diffcontact.eval.pose_metrics import box_vertices, rotate, rotation_angle
+from diffcontact.eval.pose_metrics import rotation_angle
 from diffcontact.peers import ENGINES, MissingPeerPackageError, load_engine
 from diffcontact.peers.cube import GRAVITY, HALF_EXTENT, SUBSTEPS, nominal
+from diffcontact.systems.poses import box_vertices, rotate
 
 TABLE = -0.00186  # m: the data's table plane, not at z = 0
 SETTLE_TOL = 2e-3  # m: lowest corner of the resting cube from the table

@@ -34,9 +34,15 @@ from diffcontact.data.tosses import (
     training_subset,
 )
 from diffcontact.errors import DatasetError
-from diffcontact.eval.pose_metrics import box_vertices, rotate
 from diffcontact.files import check_output, save_arrays, sha256, versions
-from diffcontact.systems.poses import matrix_to_quaternion, pose_to_points, quaternion_to_matrix, rotation_vector
+from diffcontact.systems.poses import (
+    box_vertices,
+    matrix_to_quaternion,
+    pose_to_points,
+    quaternion_to_matrix,
+    rotate,
+    rotation_vector,
+)
 
 CONTACT_HEIGHT = 0.003  # m: a frame whose lowest corner is this close to the table is flagged as in contact
 # A toss's first state (``first_states``): fitted to up to FLIGHT_FRAMES frames of free flight (the lowest corner

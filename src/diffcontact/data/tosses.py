@@ -182,7 +182,7 @@ def load_tosses(path: str | Path) -> Tosses:
 def resting_table_height(tosses: Tosses, half_extents, frames: int = 5) -> tuple[float, float]:
     """The table plane's height estimated from resting frames: the median over tosses of the lowest corner's z (m)
     over each toss's last ``frames`` frames (every toss ends at rest), and the interquartile range of those (m)."""
-    from diffcontact.eval.pose_metrics import box_vertices, rotate
+    from diffcontact.systems.poses import box_vertices, rotate
 
     corners = box_vertices(half_extents)
     lows = []

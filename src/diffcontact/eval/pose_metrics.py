@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from diffcontact.systems.poses import box_vertices, rotate
+
 
 def _check(name: str, a: np.ndarray, cols: int) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
@@ -37,23 +39,6 @@ def rotation_angle(q_hat: np.ndarray, q: np.ndarray) -> np.ndarray:
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
     dot = np.clip(np.abs((q_hat * q).sum(1)), 0.0, 1.0)
     return 2.0 * np.arccos(dot)
-
-
-def rotate(quaternion: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Body-frame points (V, 3) rotated by each frame's quaternion (frames, 4), w first: (frames, V, 3)."""
-    w, u = quaternion[:, :1, None], quaternion[:, None, 1:]  # (F, 1, 1), (F, 1, 3)
-    p = np.broadcast_to(points[None], (len(quaternion), *points.shape))
-    t = 2.0 * np.cross(u, p)
-    return p + w * t + np.cross(u, t)
-
-
-def box_vertices(half_extents) -> np.ndarray:
-    """The 8 corners (8, 3) of a box with these half-extents (3,) in its body frame (the box system's own)."""
-    import torch
-
-    from diffcontact.systems.box import corners
-
-    return corners(torch.as_tensor(np.asarray(half_extents, dtype=np.float64))).numpy()
 
 
 def penetration(position: np.ndarray, quaternion: np.ndarray, half_extents, table_height: float) -> np.ndarray:

@@ -190,8 +190,8 @@ def toss_gif(
     """A GIF of the first ``SHOWN_TOSSES`` tosses side by side in 3-D: the recorded box (black) and the predicted one
     (red) every ``every`` frames, over the longest of them."""
     from diffcontact.eval.plots import _pyplot
-    from diffcontact.eval.pose_metrics import box_vertices, rotate
     from diffcontact.files import save_gif
+    from diffcontact.systems.poses import box_vertices, rotate
 
     plt = _pyplot()
     shown = min(SHOWN_TOSSES, tosses.n)

@@ -18,7 +18,6 @@ import pybullet as pb  # pyright: ignore[reportMissingImports]  (an optional ext
 
 from diffcontact.data.tosses import Tosses
 from diffcontact.errors import ConfigError
-from diffcontact.eval.pose_metrics import rotate
 from diffcontact.peers.cube import (
     GRAVITY,
     HALF_EXTENT,
@@ -31,6 +30,7 @@ from diffcontact.peers.cube import (
     check_params,
     roll_out_groups,
 )
+from diffcontact.systems.poses import rotate
 
 ENGINE = "bullet"
 PARAMETERS = (

@@ -8,6 +8,7 @@ the angular velocity ω in the body frame, so that Ṙ = R [ω]×.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -123,3 +124,21 @@ def rotation_vector(q: torch.Tensor) -> torch.Tensor:
     # angle / s, with its limit 2 / w (≈ 2) where s is tiny (no 0/0)
     factor = torch.where(s > 1e-12, angle / s.clamp_min(1e-300), 2.0 / w)
     return factor[..., None] * u
+
+
+# numpy, for recorded and predicted poses (eval.pose_metrics, data.measured, the peers)
+
+
+def rotate(quaternion: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Body-frame points (V, 3) rotated by each frame's quaternion (frames, 4), w first: (frames, V, 3)."""
+    w, u = quaternion[:, :1, None], quaternion[:, None, 1:]  # (F, 1, 1), (F, 1, 3)
+    p = np.broadcast_to(points[None], (len(quaternion), *points.shape))
+    t = 2.0 * np.cross(u, p)
+    return p + w * t + np.cross(u, t)
+
+
+def box_vertices(half_extents) -> np.ndarray:
+    """The 8 corners (8, 3) of a box with these half-extents (3,) in its body frame (the box system's own)."""
+    from diffcontact.systems.box import corners  # (box builds its states with this module)
+
+    return corners(torch.as_tensor(np.asarray(half_extents, dtype=np.float64))).numpy()
