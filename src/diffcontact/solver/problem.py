@@ -404,9 +404,7 @@ def _solve_scaled(
     capped = None  # ((B, K) bool: contacts of answers solved with μ capped)
     if batch.check:
         capped = np.zeros(batch.mu.shape, dtype=bool)
-        _solve_capped(batch.A, batch.q, batch.mu, batch.lower, batch.active, d, batch.passes, batch.options,
-                      acceptable_tol, result, batch.T, batch.S, batch.gamma, batch.sigma, batch.lower_scale,
-                      capped)  # fmt: skip
+        _solve_capped(batch, result, capped)
     return _answer(A, q, mu, lower, batch, result, capped), result, outside
 
 
@@ -529,14 +527,14 @@ def _answer(A, q, mu, lower, batch: _Batch, result: kernel.IPMResult, capped) ->
     return ImplicitConeQP.apply(A, q, mu, lower, sol)
 
 
-def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, result, T, S, gamma, sigma,
-                  lower_scale, capped):  # fmt: skip
-    """The last attempt of ``_solve_with_retries``: its elements still at MAX_ITER with some μ > ``MU_CAP`` solved
-    with μ capped at ``MU_CAP`` (a scaled problem far better conditioned); an answer replaces theirs (in ``result``
-    and the scaling's T, S, gamma, sigma, lower_scale, in place) only where it is usable and passes the
-    natural-residual check of the problem with the true μ, and ``capped`` (B, K) marks its contacts beyond the cap.
-    (Exact where those contacts stick or separate; a contact sliding at the cap fails the check unless the
-    difference is below ``acceptable_tol``.)"""
+def _solve_capped(batch: _Batch, result: kernel.IPMResult, capped: np.ndarray) -> None:
+    """The last stage: the elements still at MAX_ITER with some μ > ``MU_CAP`` solved with μ capped at ``MU_CAP``
+    (a scaled problem far better conditioned); an answer replaces theirs (in ``result`` and the batch's scaling T, S,
+    gamma, sigma, lower_scale, in place) only where it is usable and passes the natural-residual check of the
+    problem with the true μ, and ``capped`` (B, K) marks its contacts beyond the cap.  (Exact where those contacts
+    stick or separate; a contact sliding at the cap fails the check unless the difference is below
+    ``acceptable_tol``.)"""
+    A, q, mu, lower, active, d = batch.A, batch.q, batch.mu, batch.lower, batch.active, batch.d
     rows = np.flatnonzero((result.status == _MAX_ITER) & (mu > MU_CAP).any(-1))
     if not len(rows):
         return
@@ -545,18 +543,19 @@ def _solve_capped(A, q, mu, lower, active, d, passes, options, acceptable_tol, r
         *data, contact_dims(d)
     )
     out = kernel.IPMResult(A_c, T_c, on_q, on_l, d)
-    _solve_passes(A_c, T_c, c, l_hat, on_q, on_l, d, np.arange(len(rows)), passes, options, START_MARGIN, out)
+    _solve_passes(A_c, T_c, c, l_hat, on_q, on_l, d, np.arange(len(rows)), batch.passes, batch.options, START_MARGIN,
+                  out)  # fmt: skip
     natural = _natural(data[0], data[1], mu[rows], data[3], data[4], d, gamma_c, T_c, out.z, np.arange(len(rows)))
-    ok = (out.status <= _INACCURATE) & (natural <= acceptable_tol)
+    ok = (out.status <= _INACCURATE) & (natural <= batch.acceptable_tol)
     take = rows[ok]
     for name in kernel.IPMResult.OUTPUTS:
         getattr(result, name)[take] = getattr(out, name)[ok]
     for full, part in (
-        (T, T_c),
-        (S, S_c),
-        (gamma, gamma_c),
-        (sigma, sigma_c),
-        (lower_scale, lower_scale_c),
+        (batch.T, T_c),
+        (batch.S, S_c),
+        (batch.gamma, gamma_c),
+        (batch.sigma, sigma_c),
+        (batch.lower_scale, lower_scale_c),
     ):
         full[take] = part[ok]
     capped[take] = mu[take] > MU_CAP
