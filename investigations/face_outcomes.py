@@ -97,6 +97,7 @@ def main() -> None:
     parser.add_argument("--mu", type=float, nargs="+", default=[0.1, 0.18, 0.3])
     parser.add_argument("--e", type=float, nargs="+", default=[0.0, 0.125, 0.3])
     parser.add_argument("--moments", type=float, nargs="+", default=[1.0], help="multiples of the task's moments")
+    parser.add_argument("--save", help="an .npz for every cell's per-toss errors and final-face flags")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -153,6 +154,8 @@ def main() -> None:
             ),
         },
     }
+    if args.save:
+        np.savez(args.save, cells=np.array(list(grid)), errors=errors, same_face=sames, toss_id=tosses.toss_id)
     print(json.dumps(result, indent=1))
 
 
