@@ -14,6 +14,14 @@ free-flight fit as ``evaluate`` starts them):
   change of the angular velocity (world frame, from the rotations of the frames around) across the same frames.
 
     python investigations/toss_friction.py data/CubeToss --split val
+
+``--grid G.npz`` (``face_outcomes.py --save`` on the same split) also sets each toss's best μ of that grid (the
+least error over its e) against the deceleration the toss slides at (median of its flat frames at 0.1–0.6 m/s),
+over the tosses that end on the recorded face with the task's values: does the best μ follow the toss's friction?
+
+    python investigations/face_outcomes.py data/CubeToss --split test --mu 0.14 0.16 0.18 0.2 0.22 --e 0 0.125 \
+        --save grid.npz
+    python investigations/toss_friction.py data/CubeToss --split test --no-model --grid grid.npz
 """
 
 from __future__ import annotations
@@ -103,6 +111,36 @@ def summary(sliding: np.ndarray, ratios: np.ndarray, gravity: float) -> dict:
     }
 
 
+def best_mu_against_sliding(grid: str, tosses, height: float, half, gravity: float) -> dict:
+    """Spearman's correlation of each toss's best μ in ``grid`` with its flat-sliding deceleration (see the module)."""
+    from scipy.stats import spearmanr
+
+    saved = np.load(grid)
+    cells, errors = saved["cells"], saved["errors"]
+    if not np.array_equal(saved["toss_id"], tosses.toss_id):
+        raise SystemExit(f"{grid} holds other tosses than this split")
+    nominal = build_task("CubeToss").params
+    at_task = np.flatnonzero((cells[:, 0] == float(nominal.mu[0])) & (cells[:, 1] == float(nominal.e[0])))
+    if not len(at_task):
+        raise SystemExit(f"{grid} has no cell at the task's μ and e")
+    mus = np.unique(cells[:, 0])
+    best_mu = mus[np.stack([errors[cells[:, 0] == m].min(0) for m in mus]).argmin(0)]
+    sliding = np.full(tosses.n, np.nan)
+    for i in range(tosses.n):
+        r = tosses.frames_of(i)
+        s = flat_sliding(tosses.position[r], tosses.quaternion[r], tosses.dt, height, half)
+        s = s[(s[:, 0] > 0.1) & (s[:, 0] < 0.6)]
+        if len(s) >= 5:
+            sliding[i] = np.median(s[:, 1]) / gravity
+    keep = np.isfinite(sliding) & saved["same_face"][at_task[0]]
+    rho = spearmanr(best_mu[keep], sliding[keep])
+    by_mu = {f"{m:g}": {"tosses": int((keep & (best_mu == m)).sum()),
+                        "median_sliding_g": round(float(np.median(sliding[keep & (best_mu == m)])), 3)}
+             for m in mus if (keep & (best_mu == m)).any()}  # fmt: skip
+    return {"tosses": int(keep.sum()), "spearman": round(float(rho.statistic), 3), "p": round(float(rho.pvalue), 3),
+            "by_best_mu": by_mu}  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("data", help="an imported dataset folder (diffcontact import contactnets)")
@@ -111,6 +149,7 @@ def main() -> None:
     parser.add_argument("--mu", type=float, default=None, help="the model's μ (default: the task file's)")
     parser.add_argument("--e", type=float, default=None, help="the model's e (default: the task file's)")
     parser.add_argument("--no-model", action="store_true", help="measure the recording only")
+    parser.add_argument("--grid", help="face_outcomes.py --save of the same split: best μ against sliding friction")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -148,6 +187,8 @@ def main() -> None:
 
         label = f"model mu {float(task.params.mu[0]):g} e {float(task.params.e[0]):g}"
         result[label] = measure(predicted())
+    if args.grid:
+        result["best_mu_against_sliding"] = best_mu_against_sliding(args.grid, tosses, height, half, gravity)
     print(json.dumps(result, indent=1))
 
 
