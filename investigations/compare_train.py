@@ -21,14 +21,19 @@ NEW = Path(__file__).resolve().parents[1] / "src"
 TASKS = ("BP5-e", "BP5", "CP3-e", "CP3", "BD5", "Rope", "Gyro-e", "Gyro")
 
 LOSSES = """
-import json, sys, torch
+import inspect, json, sys, torch
 from diffcontact.threads import set_threads
 from diffcontact.bench.train import synthetic_batch
 from diffcontact.train.module import ContactLightningModule
 task, model, batch, steps = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 set_threads(1)
 data, _ = synthetic_batch(task, model, batch, 0)
-m = ContactLightningModule(task, model, seed=0, dtype="float32", lr=1e-2)
+settings = dict(seed=0, dtype="float32", lr=1e-2)
+if "config" in inspect.signature(ContactLightningModule).parameters:  # (a tree whose module takes a TrainConfig)
+    from diffcontact.train.config import TrainConfig
+    m = ContactLightningModule(TrainConfig(task, model, **settings))
+else:
+    m = ContactLightningModule(task, model, **settings)
 opt = m.configure_optimizers()
 opt = opt["optimizer"] if isinstance(opt, dict) else opt
 losses = []

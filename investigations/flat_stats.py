@@ -69,8 +69,8 @@ def main() -> None:
     learned = json.loads((args.run / "learned.json").read_text())
     hp = config["args"]
     data = ContactDataModule(hp["task"], args.data, seed=hp["seed"])
-    best = ContactLightningModule.load_from_checkpoint(learned["best_checkpoint"], map_location="cpu")
-    initial = ContactLightningModule(**{k: v for k, v in best.hparams.items()})
+    best = ContactLightningModule.from_checkpoint(learned["best_checkpoint"])
+    initial = ContactLightningModule(best.config)
     for name, module in (("initial model", initial), ("best checkpoint", best)):
         print(name, json.dumps(replay(module, data)))
 

@@ -68,7 +68,7 @@ def main() -> None:
 
         learned = json.loads((args.run / "learned.json").read_text())
         best = args.run / "checkpoints" / Path(learned["best_checkpoint"]).name
-        module = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
+        module = ContactLightningModule.from_checkpoint(best)
         dtype = next(module.net.parameters()).dtype
         with torch.no_grad():
             _, _, hit = sim.rollout(State(x[:, 0], v[:, 0]), task.params, task.dt, x.shape[1])

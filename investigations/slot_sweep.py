@@ -34,9 +34,7 @@ def main() -> None:
 
     learned = json.loads((args.run / "learned.json").read_text())
     config = json.loads((args.run / "config.json").read_text())["args"]
-    module = ContactLightningModule.load_from_checkpoint(
-        args.run / "checkpoints" / Path(learned["best_checkpoint"]).name, map_location="cpu"
-    )
+    module = ContactLightningModule.from_checkpoint(args.run / "checkpoints" / Path(learned["best_checkpoint"]).name)
     if config.get(f"{args.coef}_transform") != "projected":
         raise SystemExit(f"{args.run}: {args.coef} is not projected (its parameter is not its value)")
     dtype = getattr(torch, config.get("dtype", "float32"))

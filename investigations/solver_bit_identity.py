@@ -6,8 +6,8 @@ and save the answers, then compare two saves.
     python investigations/solver_bit_identity.py compare before.pt after.pt            # built in place there
 
 The batches: seeded random problems (K = 1 … 40 contacts, d = 1, 2, 3; A regular, and singular with q in its
-range; μ in [0, 1.5) with zeros), each with the gradients of a weighted sum of f w.r.t. A, q and μ, and the
-captured simulation batches of tests/data.
+range; μ in [0, 1.5) with zeros; μ from 0.1 to 1e6 with lower bounds and inactive contacts), each with the
+gradients of a weighted sum of f w.r.t. A, q and μ, and the captured simulation batches of tests/data.
 """
 
 from __future__ import annotations
@@ -42,6 +42,16 @@ def answers() -> dict[str, torch.Tensor]:
                 weights = torch.linspace(0.5, 1.5, K * d, dtype=torch.float64)
                 grads = torch.autograd.grad((f * weights).sum(), (A, q, mu))
                 out[f"K{K}-d{d}-rank{cols}"] = torch.cat([f.detach().flatten(), *(x.flatten() for x in grads)])
+    for K, d in ((2, 3), (5, 3), (9, 3), (5, 2)):  # (μ 0.1 … 1e6, bounds, inactive contacts: every stage)
+        J = torch.randn(64, K * d, K * d + 2, dtype=torch.float64, generator=g)
+        A, q = J @ J.mT, torch.randn(64, K * d, dtype=torch.float64, generator=g)
+        mu = 10 ** (7 * torch.rand(64, K, dtype=torch.float64, generator=g) - 1)
+        lower = 0.1 * torch.rand(64, K, dtype=torch.float64, generator=g)
+        active = torch.rand(64, K, generator=g) > 0.2
+        A.requires_grad_(True), q.requires_grad_(True), mu.requires_grad_(True)
+        f = dc.solve_cone_qp(A, q, mu, lower, active, on_failure="count")
+        grads = torch.autograd.grad((f * torch.linspace(0.5, 1.5, K * d, dtype=torch.float64)).sum(), (A, q, mu))
+        out[f"K{K}-d{d}-large-mu"] = torch.cat([f.detach().flatten(), *(x.flatten() for x in grads)])
     for name in CAPTURED:
         cases = torch.load(DATA / name, weights_only=True)
         for i, c in enumerate(cases if isinstance(cases, list) else [cases]):

@@ -258,9 +258,10 @@ def test_mlp_cd_clnn_fits_the_velocity_jump_of_the_collision_pairs():
 def test_the_opt_in_mse_training_loss_of_a_one_step_pair():
     """train_loss="mse" (docs/baselines.md: under L1 the collision networks converge to Δv = 0) is half the mean
     squared error of the pair's two frames; L1 stays the default and unknown losses are refused."""
+    from diffcontact.train.config import TrainConfig
     from diffcontact.train.module import ContactLightningModule
 
-    module = ContactLightningModule("BP1", "MLP-CD-CLNN", hidden=8, layers=1, train_loss="mse")
+    module = ContactLightningModule(TrainConfig("BP1", "MLP-CD-CLNN", hidden=8, layers=1, train_loss="mse"))
     g = torch.Generator().manual_seed(0)
     x0, v0, x1, v1 = (torch.rand(3, 1, 2, generator=g) for _ in range(4))
     px, pv = module.net(x0, v0, 2)
@@ -270,6 +271,6 @@ def test_the_opt_in_mse_training_loss_of_a_one_step_pair():
     l1 = 0.5 * ((px - x).abs().mean() + (pv - v).abs().mean())
     assert torch.allclose(module.train().loss(batch), expected) and torch.allclose(module.loss(batch, "l1"), l1)
     assert torch.allclose(module.eval().loss(batch), l1)  # (validation)
-    assert module.hparams.train_loss == "mse"
+    assert module.config.train_loss == "mse" and module.hparams["config"]["train_loss"] == "mse"
     with pytest.raises(ConfigError, match="train_loss = 'huber' is not one of"):
-        ContactLightningModule("BP1", "MLP-CD-CLNN", hidden=8, layers=1, train_loss="huber")
+        TrainConfig("BP1", "MLP-CD-CLNN", hidden=8, layers=1, train_loss="huber")

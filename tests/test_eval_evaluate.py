@@ -1,5 +1,5 @@
 """`diffcontact evaluate` on tiny runs: the exact model scores zero, a trained run writes every output, and a run of
-another task, a missing or corrupt checkpoint, or an unregistered model are one-line errors."""
+another task, a missing or corrupt checkpoint, or an unknown model are one-line errors."""
 
 from __future__ import annotations
 
@@ -15,9 +15,10 @@ from diffcontact import simulator_for
 from diffcontact.cli import app
 from diffcontact.data.generate import generate_dataset
 from diffcontact.errors import ConfigError
+from diffcontact.eval import loading
 from diffcontact.eval.evaluate import evaluate_run
-from diffcontact.eval.loading import register_model
 from diffcontact.state import State
+from diffcontact.systems import build_task
 from diffcontact.train.run import train_run
 
 
@@ -33,9 +34,6 @@ class _Exact(nn.Module):
         return xs, vs
 
 
-register_model("EXACT-TEST", lambda run, config, checkpoint, task: _Exact(task))
-
-
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
@@ -48,13 +46,15 @@ def _exact_run(tmp_path, data_root):
     run = tmp_path / "exact"
     (run / "checkpoints").mkdir(parents=True)
     (run / "checkpoints" / "best-epoch=0.ckpt").write_bytes(b"")  # (the exact model has no weights)
-    args = {"task": "BP1", "model": "EXACT-TEST", "data_root": str(data_root)}
+    args = {"task": "BP1", "model": "CM-CD-CLNN", "data_root": str(data_root)}
     (run / "config.json").write_text(json.dumps({"args": args, "versions": {}}))
     return run
 
 
-def test_the_exact_model_has_zero_error_and_keeps_the_true_energy(trained, tmp_path):
+def test_the_exact_model_has_zero_error_and_keeps_the_true_energy(trained, tmp_path, monkeypatch):
+    """The evaluation of a model without error (the ground-truth simulator in place of a run's trained model)."""
     run = _exact_run(tmp_path, trained / "data")
+    monkeypatch.setattr(loading, "trained_net", lambda run, config, checkpoint: _Exact(build_task("BP1")))
     m = evaluate_run(run, pictures=False)
     assert (m["n_trajectories"], m["frames"], m["trajectory_error"]["steps"]) == (3, 12, 5)
     assert max(m["trajectory_error"]["per_trajectory"]) < 1e-12 and max(m["error_curve"]) < 1e-12
@@ -100,7 +100,7 @@ def test_errors_are_one_line_and_name_the_problem(trained, tmp_path):
         evaluate_run(run)
     config["args"]["model"] = "NOPE"
     (run / "config.json").write_text(json.dumps(config))
-    with pytest.raises(ConfigError, match="model 'NOPE' has no registered loader"):
+    with pytest.raises(ConfigError, match="model 'NOPE' is not one that diffcontact trains"):
         evaluate_run(run)
     with pytest.raises(ConfigError, match="config.json is missing"):
         evaluate_run(tmp_path / "nothing")

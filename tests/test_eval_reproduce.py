@@ -1,5 +1,5 @@
 """`diffcontact reproduce --quick` end to end, killed after its first run and resumed: the report has every section,
-missing models are rows marked missing, and the finished run is not redone."""
+and the finished run is not redone."""
 
 from __future__ import annotations
 

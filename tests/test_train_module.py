@@ -9,6 +9,7 @@ from test_models import _colliding_chunks
 from torch.utils.data import DataLoader, TensorDataset
 
 import diffcontact as dc
+from diffcontact.train.config import TrainConfig
 from diffcontact.train.module import ContactLightningModule
 
 # (these tests fit the module on a training loader alone: Lightning's notice that validation is skipped is expected)
@@ -26,7 +27,7 @@ def _trainer(**kw) -> pl.Trainer:
 
 def _module() -> ContactLightningModule:
     return ContactLightningModule(
-        "BP1", hidden=8, layers=1, mu_transform="softplus", e_transform="sigmoid", lr=1e-2, schedule="constant"
+        TrainConfig("BP1", hidden=8, layers=1, mu_transform="softplus", e_transform="sigmoid", schedule="constant")
     )
 
 
@@ -95,7 +96,7 @@ def test_the_mu_pull_moves_mu_off_the_sticking_plateau():
     batch = (X.double(), V.double())
 
     def descend(mu_l1: float) -> tuple[float, float]:
-        module = ContactLightningModule("BP1", hidden=8, layers=1, mu_l1=mu_l1, dtype="float64").train()
+        module = ContactLightningModule(TrainConfig("BP1", hidden=8, layers=1, mu_l1=mu_l1, dtype="float64")).train()
         for p in module.net.parameters():
             p.requires_grad_(False)
         mu = module.learned.mu_raw
@@ -115,6 +116,6 @@ def test_the_mu_pull_moves_mu_off_the_sticking_plateau():
     assert plateau_grad < 1e-12 and mu_without == pytest.approx(50.0, abs=1e-9)  # (every contact sticks)
     _, mu_with = descend(1e-6)
     assert mu_with == pytest.approx(50.0 - 4 * 0.05, abs=1e-3)  # (Adam's steps: lr each, whatever the pull's size)
-    module = ContactLightningModule("BP1", hidden=8, layers=1, mu_l1=1.0, dtype="float64").eval()
-    plain = ContactLightningModule("BP1", hidden=8, layers=1, dtype="float64").eval()
+    module = ContactLightningModule(TrainConfig("BP1", hidden=8, layers=1, mu_l1=1.0, dtype="float64")).eval()
+    plain = ContactLightningModule(TrainConfig("BP1", hidden=8, layers=1, dtype="float64")).eval()
     assert torch.equal(module.loss(batch), plain.loss(batch))  # (validation: the data's loss alone)

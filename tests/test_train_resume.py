@@ -15,7 +15,10 @@ from diffcontact.train.run import loss_curves, train_run
 
 # A first float32 forward pass, in every process that trains here: the potential's orthogonal initialisation (a float32
 # QR) can differ in its last bits before and after one in a process, which would make two runs differ from the start.
-WARM_UP = 'ContactLightningModule("BP1").loss((torch.zeros(1, 5, 1, 2), torch.zeros(1, 5, 1, 2)))'
+WARM_UP = (
+    "from diffcontact.train.config import TrainConfig\nfrom diffcontact.train.module import ContactLightningModule\n"
+    'ContactLightningModule(TrainConfig("BP1")).loss((torch.zeros(1, 5, 1, 2), torch.zeros(1, 5, 1, 2)))'
+)
 
 
 def _same_threads() -> str:
@@ -105,7 +108,7 @@ def test_a_run_killed_by_sigkill_resumes_to_the_same_end(data_root, whole, tmp_p
 
     run = tmp_path / "killed"
     code = (
-        "from diffcontact.train.module import ContactLightningModule\nimport torch\n"
+        "import torch\n"
         f"from diffcontact.train.run import train_run\n{_same_threads()}{WARM_UP}\n"
         f"train_run('BP1', out={str(run)!r}, data_root={str(data_root)!r}, progress=False, **{SETTINGS!r})\n"
     )
@@ -127,7 +130,6 @@ def test_a_run_killed_by_sigkill_resumes_to_the_same_end(data_root, whole, tmp_p
 KILLED_MID_WRITE = """
 import io, os, signal, sys, torch
 import diffcontact.train.run as run
-from diffcontact.train.module import ContactLightningModule
 from diffcontact.train.run import train_run
 real, writes = run.atomic_write, []
 def half_then_kill(write):

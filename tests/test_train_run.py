@@ -189,7 +189,7 @@ def test_mu_and_e_can_start_from_a_scan_of_the_training_loss(data_root, tmp_path
 
 def test_mu_learns_at_its_own_rate_where_given():
     def rates(**kw):
-        module = ContactLightningModule("BP1", lr=1e-2, coef_lr=0.5, schedule="constant", **kw)
+        module = ContactLightningModule(TrainConfig("BP1", lr=1e-2, coef_lr=0.5, schedule="constant", **kw))
         module.trainer = None
         return [g["lr"] for g in module.configure_optimizers().param_groups]
 
@@ -198,7 +198,7 @@ def test_mu_learns_at_its_own_rate_where_given():
 
 
 def _summary(task: str):
-    module = ContactLightningModule(task)
+    module = ContactLightningModule(TrainConfig(task))
     state = module.task.sample(2, seed=0)  # (no contact)
     chunk_x, chunk_v = (t[:, None].expand(-1, 2, -1, -1) for t in (state.x, state.v))
     return module, learned_summary(module.net, module.task, chunk_x, chunk_v)
@@ -336,8 +336,29 @@ def test_one_config_holds_every_setting_validated_and_the_module_takes_its_defau
     assert TrainConfig.resolve("BP1", "CMr-CD-CLNN").reg > 0 and TrainConfig.resolve("BP1").reg == 0.0
     with pytest.raises(ConfigError, match=r"lacks \['lr'\]"):
         TrainConfig.from_record({k: v for k, v in published.record().items() if k != "lr"})
-    module = ContactLightningModule("BP1")  # (the module's defaults are the default preset's, not its own)
-    assert module.config == TrainConfig("BP1") and (module.config.lr, module.config.schedule) == (1e-2, "cosine")
+    config = TrainConfig.resolve("BP1", hidden=8, layers=1)
+    module = ContactLightningModule(config)  # (the run's settings are the module's one settings argument)
+    assert module.config is config and ContactLightningModule(config.record()).config == config
+    with pytest.raises(TypeError, match=r"config is a TrainConfig or its record, not 'BP1'"):
+        ContactLightningModule("BP1")  # type: ignore[arg-type]
+
+
+def test_a_checkpoint_loads_with_its_settings_also_one_written_before_the_record(tmp_path):
+    """A checkpoint holds its run's TrainConfig; one written when the module took keyword arguments holds the task,
+    the model and the settings given, and loads with TrainConfig's defaults for the rest."""
+    config = TrainConfig("BP1", "CMr-CD-CLNN", hidden=8, layers=1, seed=3, reg=0.05, lr=3e-3)
+    module = ContactLightningModule(config)
+    with torch.no_grad():
+        module.learned.mu_raw.add_(0.25)  # (weights that a fresh module of the same seed does not have)
+    state = module.state_dict()
+    counters = {"skipped_steps": 2, "forward_failures": 1, "solver_failures_by_status": {}, "seconds": 9.0}
+    for hyper in ({"config": config.record()}, {"task": "BP1", "model": "CMr-CD-CLNN", "hidden": 8, "layers": 1,
+                                                 "seed": 3, "reg": 0.05, "lr": 3e-3}):  # fmt: skip
+        path = tmp_path / "run.ckpt"
+        torch.save({"hyper_parameters": hyper, "state_dict": state, "counters": counters}, path)
+        loaded = ContactLightningModule.from_checkpoint(path)
+        assert loaded.config == config and loaded.skipped_steps == 2 and loaded.seconds_before == 9.0
+        assert all(torch.equal(v, loaded.state_dict()[k]) for k, v in state.items())
 
 
 def test_a_baseline_weighs_velocities_whatever_the_tasks_setting_for_the_contact_models(data_root, tmp_path):

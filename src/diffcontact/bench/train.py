@@ -48,6 +48,7 @@ from diffcontact.errors import ConfigError
 from diffcontact.files import atomic_write
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES, ContactModelNet
 from diffcontact.systems import BENCHMARK_TASKS, build_task
+from diffcontact.train.config import TrainConfig
 from diffcontact.train.module import ContactLightningModule
 
 BATCH = 200  # chunks per step: the published preset's batch (the default preset's is 50)
@@ -89,7 +90,7 @@ class StepTimer:
     """One model's training step on one batch, timed by part; ``contacts`` False disables them (the same params)."""
 
     def __init__(self, task: str, model: str, batch: tuple[torch.Tensor, ...], seed: int = 0):
-        self.module = ContactLightningModule(task, model, seed=seed, dtype="float32")
+        self.module = ContactLightningModule(TrainConfig(task, model, seed=seed, dtype="float32"))
         self.batch = batch
         opt = self.module.configure_optimizers()
         self.opt = opt["optimizer"] if isinstance(opt, dict) else opt

@@ -17,14 +17,14 @@ import diffcontact
 from diffcontact.eval import published
 from diffcontact.eval.evaluate import evaluated
 from diffcontact.files import write_text
-from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+from diffcontact.models import MODEL_NAMES
 from diffcontact.run_dir import ROLLOUT, ROLLOUT_GIF, RunDir
 
 HOMOGENEOUS = ("BP5-e", "CP3-e", "CP3", "Rope", "Gyro-e", "Gyro")
 
 
 def _status(out: Path, task: str, model: str, seed: int) -> str:
-    """What became of a cell without metrics: missing (no way to train the model), failed (with why) or not run."""
+    """What became of a cell without metrics: failed (with why), interrupted or not run."""
     run = RunDir.of_cell(out, task, model, seed)
     try:
         record = json.loads(run.reproduce_record.read_text())
@@ -32,8 +32,6 @@ def _status(out: Path, task: str, model: str, seed: int) -> str:
         record = {}
     if record.get("status") == "failed":
         return f"failed: {record.get('error', '')}"
-    if model not in (*MODEL_NAMES, *BASELINE_NAMES) and not run.config.is_file():
-        return "missing (not trainable yet)"
     if run.last_checkpoint.is_file():
         return "not measured yet (training interrupted; resumes from its last checkpoint)"
     return "not measured yet (not run)"

@@ -27,7 +27,6 @@ from diffcontact.data.noise import check_noise
 from diffcontact.errors import ConfigError
 from diffcontact.eval.backends import Backend, cell_runner
 from diffcontact.eval.evaluate import evaluated
-from diffcontact.eval.loading import registered_models
 from diffcontact.eval.report import write_report
 from diffcontact.files import write_json
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
@@ -43,14 +42,13 @@ QUICK = {"n_train": 16, "n_val": 4, "n_test": 5, "frames": 30, "epochs": 1, "bat
 @dataclass(frozen=True)
 class Cell:
     """One (task, model, seed) of the matrix, its run directory and what is left to do: "done", "train" (then
-    evaluate), "evaluate" or "missing" (``note`` says why)."""
+    evaluate) or "evaluate"."""
 
     task: str
     model: str
     seed: int
     run: Path
     todo: str
-    note: str = ""
     epochs: int | None = None  # (None: the preset's, or one with --quick)
     pictures: bool = True  # (the evaluation's GIF and figures)
 
@@ -68,14 +66,8 @@ def plan(out: Path, tasks: list[str], models: list[str], seeds: list[int]) -> li
                 run = RunDir.of_cell(out, task, model, seed).path
                 if evaluated(run, task, model):
                     cells.append(Cell(task, model, seed, run, "done"))
-                elif model in MODELS:
-                    cells.append(Cell(task, model, seed, run, "evaluate" if RunDir(run).learned.is_file() else "train"))
-                elif model in registered_models() and RunDir(run).config.is_file():
-                    cells.append(Cell(task, model, seed, run, "evaluate"))
                 else:
-                    why = "no loader registered" if model not in registered_models() else "no run"
-                    note = f"missing: `diffcontact train` cannot train {model} yet ({why})"
-                    cells.append(Cell(task, model, seed, run, "missing", note))
+                    cells.append(Cell(task, model, seed, run, "evaluate" if RunDir(run).learned.is_file() else "train"))
     return cells
 
 
@@ -265,10 +257,9 @@ def reproduce(
     for task in tasks:
         if task not in available_tasks():
             raise ConfigError(f"task {task!r} is not one of {available_tasks()}")
-    known = sorted({*MODELS, *registered_models()})
     for model in models:
-        if model not in known:
-            raise ConfigError(f"model {model!r} is not one of {known}")
+        if model not in MODELS:
+            raise ConfigError(f"model {model!r} is not one of {list(MODELS)}")
     if jobs < 1:
         raise ConfigError(f"jobs = {jobs} is not >= 1")
     if threads < 1:
@@ -291,9 +282,6 @@ def reproduce(
         generate_dataset(task, data, noise=noise, progress=False, echo=echo, **sizes)
     cells = [replace(c, epochs=epochs) for c in plan(out, tasks, models, seeds)]
     todo = [c for c in cells if c.todo in ("train", "evaluate")]
-    for c in cells:
-        if c.todo == "missing":
-            echo(f"{c.label}: {c.note}")
     done = sum(c.todo == "done" for c in cells)
     jobs = min(jobs, max(len(todo), 1))  # (a cluster backend may have every cell in flight)
     progress = Progress(

@@ -13,6 +13,7 @@ under them), so they carry no gradient; D carries the gradient with respect to �
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Literal, overload
 
@@ -63,6 +64,50 @@ class SolverInfo:
 #: The largest friction coefficient accepted (``POLICY.mu_max``): far beyond sticking (μ = 1e6 sticks wherever
 #: f_n > 0), and far below the μ (about 1e160) at which the scaled problem overflows.
 MU_MAX = POLICY.mu_max
+
+
+@dataclass(frozen=True)
+class ConeQP:
+    """A batch of contact cone QPs as ``solve_cone_qp`` takes them, checked: A (B, n, n), q (B, n), mu (B, K), lower
+    (B, K) or None, active (B, K) bool or None; ``d`` the dimension of every contact (n = K·d)."""
+
+    A: torch.Tensor
+    q: torch.Tensor
+    mu: torch.Tensor
+    lower: torch.Tensor | None
+    active: torch.Tensor | None
+    d: int
+
+    def rows(self, rows: torch.Tensor) -> ConeQP:
+        """The elements ``rows`` ((m,) int64)."""
+        A, q, mu, lower, active = (None if t is None else t[rows] for t in (self.A, self.q, self.mu, self.lower,
+                                                                            self.active))  # fmt: skip
+        return ConeQP(A, q, mu, lower, active, self.d)  # type: ignore[arg-type]
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """The float64 arrays A, q, mu, lower, active the solver works on (``_as_arrays``)."""
+        return _as_arrays(self.A, self.q, self.mu, self.lower, self.active)
+
+    def needs_graph(self) -> bool:
+        """Whether f is differentiated: gradients enabled, and A, q, μ or lower requires one."""
+        inputs = (self.A, self.q, self.mu, self.lower)
+        return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs)
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """How ``solve_cone_qp`` solves: the scaled KKT residual it aims at (``tol``) and the one still usable at the
+    iteration limit (``acceptable_tol``), the limit (``max_iter``), and what a failure does (``on_failure``:
+    "raise" or "count")."""
+
+    tol: float
+    acceptable_tol: float
+    max_iter: int
+    on_failure: str = "raise"
+
+    def counting(self) -> SolveOptions:
+        """The same options, counting failures (an inner solve whose failures the caller decides on)."""
+        return dataclasses.replace(self, on_failure="count")
 
 
 def check_problem(A, q, mu, lower=None, active=None):
@@ -258,7 +303,7 @@ def solve_cone_qp(
     d = _check_shapes(A, q, mu, lower, active)
     arrays = _as_arrays(A, q, mu, lower, active)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
-    opts = (tol, acceptable_tol, max_iter, on_failure)
+    opts = SolveOptions(tol, acceptable_tol, max_iter, on_failure)
     found, a_finite, symmetric = least_norm.flat_elements(
         arrays[0], arrays[2], arrays[4], d, least_norm.psd_tol(out_dtype)
     )
@@ -267,16 +312,16 @@ def solve_cone_qp(
         lower = torch.from_numpy(arrays[3]) if lower is None else lower
         active = torch.from_numpy(arrays[4])
         A, q, flats = least_norm.project_flat(A, q, mu, active, d, least_norm.psd_tol(out_dtype), found)
+        qp = ConeQP(A, q, mu, lower, active, d)
         if flats.consistent.any():
             # (the policy applied once at the end: a failed first solve may still be rescued, _near_least_norm)
-            f, result = _solve_least_norm(A, q, mu, lower, active, d, flats, (*opts[:3], "count"))
-            _raise_on_failure(result.status, opts[3])
+            f, result = _solve_least_norm(qp, flats, opts.counting())
+            _raise_on_failure(result.status, opts.on_failure)
         else:
-            f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
+            f, result = _solve_with_retries(qp, opts)
     else:
-        f, result = _solve_with_retries(
-            A, q, mu, lower, active, d, *opts, arrays=arrays, mu_max=mu_max, symmetric=symmetric
-        )
+        qp = ConeQP(A, q, mu, lower, active, d)
+        f, result = _solve_with_retries(qp, opts, arrays=arrays, mu_max=mu_max, symmetric=symmetric)
     if f.dtype != out_dtype or device.type != "cpu":
         f = f.to(device=device, dtype=out_dtype)
     if return_info:
@@ -285,37 +330,31 @@ def solve_cone_qp(
     return f
 
 
-def _solve_with_retries(
-    A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, on_failure, arrays=None, mu_max=None, symmetric=None
-):
+def _solve_with_retries(qp: ConeQP, opts: SolveOptions, arrays=None, mu_max=None, symmetric=None):
     """``_solve_scaled``, then ``_solve_sliding`` where a contact with μ ≥ ``scaling.MU_FREE`` slides, and the failure
-    policy (``on_failure``); returns (f, result) as ``_solve_scaled``."""
-    opts = (tol, acceptable_tol, max_iter)
-    f, result, outside = _solve_scaled(
-        A, q, mu, lower, active, d, *opts, arrays=arrays, mu_max=mu_max, symmetric=symmetric
-    )
+    policy (``opts.on_failure``); returns (f, result) as ``_solve_scaled``."""
+    f, result, outside = _solve_scaled(qp, opts, arrays=arrays, mu_max=mu_max, symmetric=symmetric)
     if outside is not None and outside.any():
-        f = _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result)
-    _raise_on_failure(result.status, on_failure)
+        f = _solve_sliding(qp, opts, outside, f, result)
+    _raise_on_failure(result.status, opts.on_failure)
     return f, result
 
 
-def _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result):
+def _solve_sliding(qp: ConeQP, opts: SolveOptions, outside: np.ndarray, f: torch.Tensor, result) -> torch.Tensor:
     """The elements of f (B, n) with contacts ``outside`` ((B, K) bool) their cone, solved again with those contacts
     scaled for sliding (``scaling.py``); their rows of f and of result's status, iterations and residual replaced.
     An answer is checked by its natural residual with every contact's true μ (one left free may have moved out of
     its cone): above ``acceptable_tol`` it becomes MAX_ITER (zeros).  Returns f."""
     rows = np.flatnonzero(outside.any(-1))
     r = torch.from_numpy(rows)
-    A_r, q_r, mu_r, lower_r, active_r = (None if t is None else t[r] for t in (A, q, mu, lower, active))
-    part = (A_r, q_r, mu_r, lower_r, active_r)
-    again, sub, _ = _solve_scaled(*part, d, *opts, sliding=np.ascontiguousarray(outside[rows]))
-    A64, q64, mu64, lower64, active64 = _as_arrays(*part)
+    part = qp.rows(r)
+    again, sub, _ = _solve_scaled(part, opts, sliding=np.ascontiguousarray(outside[rows]))
+    A64, q64, mu64, lower64, active64 = part.arrays()
     usable = np.flatnonzero(sub.status <= _INACCURATE)
     natural = optimality.natural_residual(
-        0.5 * (A64 + A64.swapaxes(1, 2)), q64, mu64, lower64, active64, again.detach().double().numpy(), d, usable
+        0.5 * (A64 + A64.swapaxes(1, 2)), q64, mu64, lower64, active64, again.detach().double().numpy(), qp.d, usable
     )
-    sub.status[usable[natural > opts[1]]] = _MAX_ITER  # (a failure, not a wrong answer)
+    sub.status[usable[natural > opts.acceptable_tol]] = _MAX_ITER  # (a failure, not a wrong answer)
     failed = torch.from_numpy(is_failure(sub.status))[:, None]
     again = torch.where(failed, torch.zeros_like(again), again)
     for name in ("status", "iterations", "residual"):
@@ -327,7 +366,7 @@ def _solve_sliding(A, q, mu, lower, active, d, opts, outside, f, result):
 class _Batch:
     """A batch as its attempts see it: the problems (the float64 arrays of ``_as_arrays``, A symmetrised), their
     scaling (``scaling.scale_batch``: f = γ·T⊙z; ``gamma`` and ``lower_scale`` change where an attempt rescales) and
-    the kernel's passes and options."""
+    the options it is solved with."""
 
     A: np.ndarray  # (B, n, n) ½(A + Aᵀ)
     q: np.ndarray
@@ -345,12 +384,23 @@ class _Batch:
     on_q: np.ndarray
     on_l: np.ndarray
     zero_mu: np.ndarray
-    passes: list[dict]
-    options: dict
-    acceptable_tol: float
+    opts: SolveOptions
     free: np.ndarray | None  # (B, K) contacts with μ ≥ ``scaling.MU_FREE`` scaled free (their cone comes after)
     mu_check: np.ndarray  # μ of the natural-residual checks (contacts scaled free: 1e300)
     check: bool  # some μ above ``optimality.MU_CHECKED``: usable answers are also checked in unscaled units
+
+    @property
+    def passes(self) -> list[dict]:
+        """The kernel's passes: their tolerances (``IPM_TOL`` first where ``tol`` is below it)."""
+        tol = self.opts.tol
+        first = [dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL))] if tol < IPM_TOL else []
+        return [*first, dict(ipm_tol=tol, final_tol=tol)]
+
+    @property
+    def options(self) -> dict:
+        """The kernel's options (the same in every pass)."""
+        o = self.opts
+        return dict(acceptable_tol=o.acceptable_tol, max_iter=o.max_iter, refine_tol=IPM_TOL, polish_steps=POLISH_STEPS)
 
     def result(self) -> kernel.IPMResult:
         """An empty kernel result for the batch."""
@@ -363,20 +413,23 @@ class _Batch:
                       start_margin, out)  # fmt: skip
 
     def natural(self, gamma: np.ndarray, z: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """The natural residuals (``_natural``) of the answers f = γ·T⊙z of ``rows``."""
-        return _natural(self.A, self.q, self.mu_check, self.lower, self.active, self.d, gamma, self.T, z, rows)
+        """The relative natural residuals (``optimality.natural_residual``, with ``mu_check``) of the answers
+        f = γ·T⊙z of the elements ``rows`` ((m,) int64); returns (m,)."""
+        if not len(rows):
+            return np.zeros(0)
+        f = np.zeros_like(z)
+        f[rows] = gamma[rows, None] * self.T[rows] * z[rows]
+        return optimality.natural_residual(self.A, self.q, self.mu_check, self.lower, self.active, f, self.d, rows)
 
 
-def _solve_scaled(
-    A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays=None, mu_max=None, sliding=None, symmetric=None
-):
-    """Solve the batch (checked tensors of ``solve_cone_qp``; lower, active may be None) with the retry policy
-    below; returns (f (B, n) float64, differentiable (``ImplicitConeQP``) where an input requires a gradient, the
-    kernel's ``IPMResult``, and (B, K) bool: the contacts scaled free whose answer leaves their cone, or None).
-    arrays: ``_as_arrays`` of the tensors if made already; the solver works on them, the tensors are only the ends
-    of the autograd graph; mu_max: the largest μ if known (``_check_values``).  sliding: (B, K) bool, contacts with
-    μ ≥ ``scaling.MU_FREE`` scaled for sliding, or None.  symmetric: (B,) bool, where A equals its transpose exactly,
-    if known (``least_norm.flat_elements``: with ``arrays``).
+def _solve_scaled(qp: ConeQP, opts: SolveOptions, arrays=None, mu_max=None, sliding=None, symmetric=None):
+    """Solve the batch ``qp`` with the retry policy below; returns (f (B, n) float64, differentiable
+    (``ImplicitConeQP``) where an input requires a gradient, the kernel's ``IPMResult``, and (B, K) bool: the
+    contacts scaled free whose answer leaves their cone, or None).  arrays: ``qp.arrays()`` if made already; the
+    solver works on them, the tensors are only the ends of the autograd graph; mu_max: the largest μ if known
+    (``_check_values``).  sliding: (B, K) bool, contacts with μ ≥ ``scaling.MU_FREE`` scaled for sliding, or None.
+    symmetric: (B,) bool, where A equals its transpose exactly, if known (``least_norm.flat_elements``: with
+    ``arrays``).
 
     The data are scaled once (f = γ·S·D·z, ``scaling.py``); every attempt then runs the compiled interior-point
     method with polishing (``kernel.solve``) on some elements, in up to two passes:
@@ -393,25 +446,25 @@ def _solve_scaled(
     ``_rescaled_start`` and ``_solve_capped`` (each says what it does and why); failed elements
     (``status.is_failure``) get z = 0.
     """
-    batch = _scaled_batch(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays, mu_max, sliding, symmetric)
+    batch = _scaled_batch(qp.arrays() if arrays is None else arrays, qp.d, opts, mu_max, sliding, symmetric)
     result = _default_start(batch)
     if np.count_nonzero(result.status) or batch.check:  # (all CONVERGED and nothing to check: the common case)
         _robust_start(batch, result)
         _rescaled_start(batch, result)
     outside = None
     if batch.free is not None and sliding is None:  # (contacts scaled free: their answer may leave the cone)
-        outside = scaling.outside_cones(result.z, batch.mu, batch.free, d) & (result.status <= _INACCURATE)[:, None]
+        outside = scaling.outside_cones(result.z, batch.mu, batch.free, qp.d) & (result.status <= _INACCURATE)[:, None]
     capped = None  # ((B, K) bool: contacts of answers solved with μ capped)
     if batch.check:
         capped = np.zeros(batch.mu.shape, dtype=bool)
         _solve_capped(batch, result, capped)
-    return _answer(A, q, mu, lower, batch, result, capped), result, outside
+    return _answer(qp, batch, result, capped), result, outside
 
 
-def _scaled_batch(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arrays, mu_max, sliding, symmetric):
-    """The ``_Batch`` of ``_solve_scaled``'s arguments: the arrays scaled once, the passes (``IPM_TOL`` first where
-    ``tol`` is below it) and the checks that large friction coefficients need."""
-    A64, q64, mu64, lower64, active64 = _as_arrays(A, q, mu, lower, active) if arrays is None else arrays
+def _scaled_batch(arrays, d: int, opts: SolveOptions, mu_max=None, sliding=None, symmetric=None) -> _Batch:
+    """The ``_Batch`` of the problems ``arrays`` (``ConeQP.arrays``) of contact dimension ``d``: scaled once, with
+    the checks that large friction coefficients need (``mu_max``, their largest μ, if known; 0: none)."""
+    A64, q64, mu64, lower64, active64 = arrays
     A64, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l, zero_mu = scaling.scale_batch(
         A64, q64, mu64, lower64, active64, contact_dims(d), sliding, symmetric
     )
@@ -423,13 +476,9 @@ def _scaled_batch(A, q, mu, lower, active, d, tol, acceptable_tol, max_iter, arr
     if mu_max >= scaling.MU_FREE:  # (contacts with μ ≥ MU_FREE scaled free, checked as such: their cone comes after)
         free = active64 & (mu64 >= scaling.MU_FREE) & (True if sliding is None else ~sliding)
         mu_check = np.where(free, 1e300, mu64)
-    passes = [dict(ipm_tol=tol, final_tol=tol)]
-    if tol < IPM_TOL:
-        passes.insert(0, dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL)))
-    options = dict(acceptable_tol=acceptable_tol, max_iter=max_iter, refine_tol=IPM_TOL, polish_steps=POLISH_STEPS)
     check = bool(mu_max > optimality.MU_CHECKED)
     return _Batch(A64, q64, mu64, lower64, active64, d, c, l_hat, T, S, gamma, sigma, lower_scale, on_q, on_l,
-                  zero_mu, passes, options, acceptable_tol, free, mu_check, check)  # fmt: skip
+                  zero_mu, opts, free, mu_check, check)  # fmt: skip
 
 
 def _default_start(batch: _Batch) -> kernel.IPMResult:
@@ -465,21 +514,10 @@ def _rescaled_start(batch: _Batch, result: kernel.IPMResult) -> None:
     factor μ).  Its answer replaces theirs where usable with a lower natural residual, and those still above
     ``acceptable_tol`` become MAX_ITER (a failure, never a wrong answer); so do the answers of stalled elements
     (every μ) above it.  Otherwise an answer replaces the element's only where its status is better."""
-    acceptable_tol, gamma = batch.acceptable_tol, batch.gamma
-    size = np.abs(result.z).max(-1)
-    stalled = (result.status == _MAX_ITER) & np.isfinite(size)
-    high_mu = (batch.mu > optimality.MU_CHECKED).any(-1) if batch.check else np.zeros(len(gamma), dtype=bool)
-    checked = np.flatnonzero((result.status <= _INACCURATE) & high_mu)
-    natural = np.zeros(len(gamma))
-    natural[checked] = batch.natural(gamma, result.z, checked)
-    wrong = natural > acceptable_tol  # (the answer is inaccurate in the problem's own units)
-    elements = np.flatnonzero(stalled | wrong)
+    acceptable_tol, gamma = batch.opts.acceptable_tol, batch.gamma
+    elements, gamma_try, stalled, wrong, natural = _rescaled_elements(batch, result)
     if not len(elements):
         return
-    gamma_try = gamma.copy()
-    gamma_try[elements] *= np.where(wrong, np.where(size > 0, np.minimum(size, 1.0), 1e-6), np.maximum(size, 1e-6))[
-        elements
-    ]
     ratio = (gamma / gamma_try)[:, None]  # c, l̂ and ∂l̂/∂lower all scale with 1/γ
     out = batch.result()
     batch.solve(elements, ROBUST_MARGIN, out, batch.c * ratio, batch.l_hat * ratio)
@@ -500,7 +538,27 @@ def _rescaled_start(batch: _Batch, result: kernel.IPMResult) -> None:
     result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
 
 
-def _answer(A, q, mu, lower, batch: _Batch, result: kernel.IPMResult, capped) -> torch.Tensor:
+def _rescaled_elements(batch: _Batch, result: kernel.IPMResult) -> tuple[np.ndarray, ...]:
+    """The elements of ``_rescaled_start`` ((m,) int64) and the batch's γ with theirs changed (B,); which elements
+    have stalled and which answers are wrong (B,) bool; the natural residuals of the checked answers (B,), 0 where
+    not checked."""
+    size = np.abs(result.z).max(-1)
+    stalled = (result.status == _MAX_ITER) & np.isfinite(size)
+    n = len(batch.gamma)
+    high_mu = (batch.mu > optimality.MU_CHECKED).any(-1) if batch.check else np.zeros(n, dtype=bool)
+    checked = np.flatnonzero((result.status <= _INACCURATE) & high_mu)
+    natural = np.zeros(n)
+    natural[checked] = batch.natural(batch.gamma, result.z, checked)
+    wrong = natural > batch.opts.acceptable_tol  # (the answer is inaccurate in the problem's own units)
+    elements = np.flatnonzero(stalled | wrong)
+    gamma_try = batch.gamma.copy()
+    if len(elements):
+        factor = np.where(wrong, np.where(size > 0, np.minimum(size, 1.0), 1e-6), np.maximum(size, 1e-6))
+        gamma_try[elements] *= factor[elements]
+    return elements, gamma_try, stalled, wrong, natural
+
+
+def _answer(qp: ConeQP, batch: _Batch, result: kernel.IPMResult, capped) -> torch.Tensor:
     """f (B, n) float64 of the solved batch: failed elements zero, the μ = 0⁺ sliding limit of frictionless
     contacts, and differentiable (``ImplicitConeQP``) where an input requires a gradient."""
     d = batch.d
@@ -515,16 +573,15 @@ def _answer(A, q, mu, lower, batch: _Batch, result: kernel.IPMResult, capped) ->
         # At μ = 0⁺ a sliding contact's cone multiplier is its sliding speed ‖g_t‖ and adds μ‖g_t‖ to the normal
         # velocity, as a linear term −μ‖g_t‖ on f_n would: zero in value, it carries that part of ∂f/∂μ.
         slide = speed * batch.sigma / batch.gamma[:, None] * batch.zero_mu
-    if not (torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (A, q, mu, lower))):
+    if not qp.needs_graph():
         return torch.from_numpy(scaling.unscale(batch.gamma, batch.T, z))
     if slide is None:
         slide = np.zeros(batch.sigma.shape)
     sol = ScaledSolution(batch.A, batch.q, batch.T, batch.S, batch.gamma, batch.lower_scale, slide, z, result)
-    if not A.dtype.is_floating_point:
-        A = A.to(torch.float64)
+    A, mu = qp.A if qp.A.dtype.is_floating_point else qp.A.to(torch.float64), qp.mu
     if capped is not None and capped.any():  # (∂f/∂μ of the capped problem is not ours: 0 beyond the cap, as if stuck)
         mu = torch.where(torch.from_numpy(capped), mu.detach(), mu)
-    return ImplicitConeQP.apply(A, q, mu, lower, sol)
+    return ImplicitConeQP.apply(A, qp.q, mu, qp.lower, sol)
 
 
 def _solve_capped(batch: _Batch, result: kernel.IPMResult, capped: np.ndarray) -> None:
@@ -534,41 +591,22 @@ def _solve_capped(batch: _Batch, result: kernel.IPMResult, capped: np.ndarray) -
     problem with the true μ, and ``capped`` (B, K) marks its contacts beyond the cap.  (Exact where those contacts
     stick or separate; a contact sliding at the cap fails the check unless the difference is below
     ``acceptable_tol``.)"""
-    A, q, mu, lower, active, d = batch.A, batch.q, batch.mu, batch.lower, batch.active, batch.d
+    mu = batch.mu
     rows = np.flatnonzero((result.status == _MAX_ITER) & (mu > MU_CAP).any(-1))
     if not len(rows):
         return
-    data = (A[rows], q[rows], np.minimum(mu[rows], MU_CAP), lower[rows], active[rows])
-    A_c, c, l_hat, T_c, S_c, gamma_c, sigma_c, lower_scale_c, on_q, on_l, _ = scaling.scale_batch(
-        *data, contact_dims(d)
-    )
-    out = kernel.IPMResult(A_c, T_c, on_q, on_l, d)
-    _solve_passes(A_c, T_c, c, l_hat, on_q, on_l, d, np.arange(len(rows)), batch.passes, batch.options, START_MARGIN,
-                  out)  # fmt: skip
-    natural = _natural(data[0], data[1], mu[rows], data[3], data[4], d, gamma_c, T_c, out.z, np.arange(len(rows)))
-    ok = (out.status <= _INACCURATE) & (natural <= batch.acceptable_tol)
+    arrays = (batch.A[rows], batch.q[rows], np.minimum(mu[rows], MU_CAP), batch.lower[rows], batch.active[rows])
+    # (no contact scaled free and no check inside: the capped answers are checked here, against the true μ)
+    sub = dataclasses.replace(_scaled_batch(arrays, batch.d, batch.opts, mu_max=0.0), mu_check=mu[rows])
+    out, every = sub.result(), np.arange(len(rows))
+    sub.solve(every, START_MARGIN, out)
+    ok = (out.status <= _INACCURATE) & (sub.natural(sub.gamma, out.z, every) <= batch.opts.acceptable_tol)
     take = rows[ok]
     for name in kernel.IPMResult.OUTPUTS:
         getattr(result, name)[take] = getattr(out, name)[ok]
-    for full, part in (
-        (batch.T, T_c),
-        (batch.S, S_c),
-        (batch.gamma, gamma_c),
-        (batch.sigma, sigma_c),
-        (batch.lower_scale, lower_scale_c),
-    ):
-        full[take] = part[ok]
+    for name in ("T", "S", "gamma", "sigma", "lower_scale"):
+        getattr(batch, name)[take] = getattr(sub, name)[ok]
     capped[take] = mu[take] > MU_CAP
-
-
-def _natural(A, q, mu, lower, active, d, gamma, T, z, rows):
-    """The relative natural residual (``optimality.natural_residual``) of the answers f = γ·T·z of the elements
-    ``rows`` ((m,) int64) of the problems (A, q, mu, lower, active: the arrays of ``_as_arrays``); returns (m,)."""
-    if not len(rows):
-        return np.zeros(0)
-    f = np.zeros_like(z)
-    f[rows] = gamma[rows, None] * T[rows] * z[rows]
-    return optimality.natural_residual(A, q, mu, lower, active, f, d, rows)
 
 
 def _raise_on_failure(status: np.ndarray, on_failure: str) -> None:
@@ -587,7 +625,7 @@ def _raise_on_failure(status: np.ndarray, on_failure: str) -> None:
         )
 
 
-def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
+def _solve_least_norm(qp: ConeQP, flats, opts: SolveOptions):
     """Solve a batch some of whose elements have non-unique minimisers and return the least-norm ones
     (``solver/least_norm.py``): (f, result) as ``_solve_with_retries``.
 
@@ -599,53 +637,45 @@ def _solve_least_norm(A, q, mu, lower, active, d, flats, opts):
     (``_near_least_norm``).
     """
     # (the flat stage in float64 whatever the input: μ² of a float32 μ ≥ 2e19 overflows, NaN in its gradient)
-    mu, lower = mu.to(torch.float64), lower.to(torch.float64)
-    problem = A, q  # (whose minimisers are sought; A, q below may be centred)
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (A, q, mu, lower)):
+    lower, active, d = qp.lower, qp.active, qp.d
+    assert lower is not None and active is not None  # (``solve_cone_qp`` made them)
+    mu, lower = qp.mu.to(torch.float64), lower.to(torch.float64)
+    qp = dataclasses.replace(qp, mu=mu, lower=lower)
+    if qp.needs_graph():
         sub = flats.idx[flats.consistent]
         with torch.no_grad():
-            first, first_result = _solve_with_retries(
-                A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d, *opts
-            )
+            part = ConeQP(qp.A[sub].detach(), qp.q[sub].detach(), mu[sub], lower[sub], active[sub], d)
+            first, first_result = _solve_with_retries(part, opts)
             failed = is_failure(first_result.status)
-            near = _near_least_norm(
-                A[sub].detach(), q[sub].detach(), mu[sub], lower[sub], active[sub], d,
-                flats.subset(flats.consistent), first, first_result, opts,
-            )  # fmt: skip
+            near = _near_least_norm(part, flats.subset(flats.consistent), first, first_result, opts)
             rescued = torch.from_numpy(failed & ~is_failure(first_result.status))
             spread, inner = least_norm.nonunique(
-                near,
-                flats.subset(flats.consistent),
-                mu[sub],
-                lower[sub],
-                active[sub],
-                d,
-                _cone_qp(mu[sub], lower[sub], active[sub], d, opts),
+                near, flats.subset(flats.consistent), mu[sub], lower[sub], active[sub], d, _cone_qp(part, opts),
                 first=first,
-            )
+            )  # fmt: skip
         nonunique, centred = torch.zeros_like(flats.consistent), torch.zeros_like(flats.consistent)
         nonunique[flats.consistent] = spread
         # (and where the first solve failed and the one with curvature did not, the problem as it is would fail
         # again: centred on that answer, it has the same minimiser and curvature on its flat directions)
         centred[flats.consistent] = spread | rescued
-        A, q = least_norm.centre_on(A, q, flats, centred, inner[spread | rescued])
-        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
+        A, q = least_norm.centre_on(qp.A, qp.q, flats, centred, inner[spread | rescued])
+        f, result = _solve_with_retries(dataclasses.replace(qp, A=A, q=q), opts)
         result.status[sub.numpy()] = np.maximum(result.status[sub.numpy()], first_result.status)
         treated = nonunique
     else:
-        f, result = _solve_with_retries(A, q, mu, lower, active, d, *opts)
+        f, result = _solve_with_retries(qp, opts)
         treated = flats.consistent
-        f = _near_least_norm(A, q, mu, lower, active, d, flats, f, result, opts)
-    solve = _cone_qp(mu, lower, active, d, opts)
-    f, status = least_norm.minimum_norm(f, flats, mu, lower, active, d, solve, problem, sel=treated)
+        f = _near_least_norm(qp, flats, f, result, opts)
+    # (the minimisers of qp's A, q are sought, not of the centred ones)
+    f, status = least_norm.minimum_norm(f, flats, mu, lower, active, d, _cone_qp(qp, opts), (qp.A, qp.q), sel=treated)
     rows = flats.idx[treated].numpy()
     result.status[rows] = np.maximum(result.status[rows], status.numpy())
     # (a failed element's zeros may have been moved along its flat directions)
     return torch.where(torch.from_numpy(is_failure(result.status))[:, None], torch.zeros_like(f), f), result
 
 
-def _near_least_norm(A, q, mu, lower, active, d, flats, f, first, opts: tuple[float, float, int, str]):
-    """The minimisers f (B, n) of the consistent elements of ``flats`` (a first solve of the batch (A, q, …), whose
+def _near_least_norm(qp: ConeQP, flats, f: torch.Tensor, first, opts: SolveOptions) -> torch.Tensor:
+    """The minimisers f (B, n) of the consistent elements of ``flats`` (a first solve of the batch ``qp``, whose
     result ``first``'s status and residual (B,) are updated in place) that lie farther than ``FAR`` times the size of
     their range part from 0, or whose first solve failed, replaced by a second solve with a curvature
     ``TIKHONOV``·ref on the flat directions.  Returns f.
@@ -666,9 +696,10 @@ def _near_least_norm(A, q, mu, lower, active, d, flats, f, first, opts: tuple[fl
     if not far.any():
         return f
     rows = flats.idx[far]
-    A_t = A[rows] + (TIKHONOV * flats.ref[far])[:, None, None] * flats.PiN[far]
-    # (a failure keeps the first answer: never raised here)
-    again, result = _solve_with_retries(A_t, q[rows], mu[rows], lower[rows], active[rows], d, *opts[:3], "count")
+    assert qp.lower is not None and qp.active is not None  # (``solve_cone_qp`` made them)
+    A_t = qp.A[rows] + (TIKHONOV * flats.ref[far])[:, None, None] * flats.PiN[far]
+    curved = ConeQP(A_t, qp.q[rows], qp.mu[rows], qp.lower[rows], qp.active[rows], qp.d)
+    again, result = _solve_with_retries(curved, opts.counting())  # (a failure keeps the first answer: never raised)
     ok = ~is_failure(result.status)
     rows_ok = rows[torch.from_numpy(ok)].numpy()
     # (a first solve that failed takes this one's status: ill-conditioned along its flat directions, it can fail
@@ -679,12 +710,14 @@ def _near_least_norm(A, q, mu, lower, active, d, flats, f, first, opts: tuple[fl
     return f.index_copy(0, torch.from_numpy(rows_ok), again[torch.from_numpy(ok)].to(f.dtype))
 
 
-def _cone_qp(mu, lower, active, d, opts):
-    """solve(idx, A, q) → (f, status) of the elements idx of this batch with A (m, n, n), q (m, n): the cone QPs
-    of the least-norm stage (``least_norm.minimum_norm``), differentiable."""
+def _cone_qp(qp: ConeQP, opts: SolveOptions):
+    """solve(idx, A, q) → (f, status) of the elements idx of ``qp`` with A (m, n, n), q (m, n) in place of theirs:
+    the cone QPs of the least-norm stage (``least_norm.minimum_norm``), differentiable."""
+    assert qp.lower is not None and qp.active is not None  # (``solve_cone_qp`` made them)
+    mu, lower, active = qp.mu, qp.lower, qp.active
 
     def solve(idx, A, q):
-        f, result = _solve_with_retries(A, q, mu[idx], lower[idx], active[idx], d, *opts)
+        f, result = _solve_with_retries(ConeQP(A, q, mu[idx], lower[idx], active[idx], qp.d), opts)
         return f, torch.from_numpy(result.status)
 
     return solve

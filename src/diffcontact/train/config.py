@@ -4,7 +4,7 @@ A run's settings come from three places, in this order: a preset (``PRESETS``: "
 measured, docs/investigations.md; "published", the paper's), the task file's ``[training]`` table (with the
 default preset only: :func:`task_training`) and what the caller gives.  :meth:`TrainConfig.resolve` applies them and
 validates every setting once; the run writes the result into config.json (``"args"``), a resumed run reads it back
-(:meth:`TrainConfig.from_record`), and the Lightning module takes its part (:meth:`TrainConfig.module_settings`).
+(:meth:`TrainConfig.from_record`), and the Lightning module takes it as its one settings argument.
 """
 
 from __future__ import annotations
@@ -160,11 +160,6 @@ class TrainConfig:
         """The settings as config.json records them (``"args"``)."""
         return dataclasses.asdict(self)
 
-    def module_settings(self) -> dict:
-        """The settings of the Lightning module (``ContactLightningModule(**config.module_settings())``): the model
-        and its optimisation, not the data, the epochs or the processes."""
-        return {k: v for k, v in self.record().items() if k not in RUN_ONLY}
-
 
 def _one_of(key: str, value, allowed) -> None:
     if value not in allowed:
@@ -200,9 +195,6 @@ PRESETS = {
         coef_lr=1.0,
     ),
 }
-# The settings of the Lightning module's that belong to the run instead.
-RUN_ONLY = ("preset", "epochs", "batch_size", "min_steps", "coef_start", "data_root", "task_training", "devices",
-            "num_nodes")  # fmt: skip
 # The settings a caller gives a run (``train.run.train_run``'s keyword arguments): all but the task and the model
 # (given apart) and those the run derives from the task file and the dataset.
 DERIVED = ("task", "model", "task_training", "first_state_chunks", "first_state_val_chunks", "first_state_lr")

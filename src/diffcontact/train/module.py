@@ -1,7 +1,8 @@
 """Lightning module: one of the four models trained on 5-frame chunks (paper Sec. 5).
 
-L1 loss on the predicted chunk (positions and velocities of every point, frame 0 included as published), AdamW
-(lr 1e-3, weight decay 1e-4).  Optimisation is manual so that a step whose gradients are not finite is skipped
+L1 loss on the predicted chunk (positions and velocities of every point, frame 0 included as published), AdamW; the
+rates, the schedule and every other setting are the run's :class:`~diffcontact.train.config.TrainConfig`, the
+module's one settings argument.  Optimisation is manual so that a step whose gradients are not finite is skipped
 entirely (no update, no weight decay, no moment update) and counted; so is a step whose forward pass fails on a
 non-finite state (a diverging learned model), with a warning.  Logged per epoch: losses, learned μ and e (summary),
 learned mass ratios, skipped steps and contact-solver failures.
@@ -23,6 +24,7 @@ import logging
 import time
 import warnings
 from collections import Counter
+from pathlib import Path
 from typing import cast
 
 import lightning.pytorch as pl
@@ -70,21 +72,30 @@ def quiet_lightning() -> None:
     warnings.filterwarnings("ignore", r"Checkpoint directory .* exists and is not empty", UserWarning)
 
 
+def saved_config(checkpoint: dict) -> TrainConfig:
+    """The settings a loaded Lightning checkpoint of the module holds: its run's ``TrainConfig`` record, or, in one
+    written when the module took keyword arguments, the task, the model and the settings given (TrainConfig's
+    defaults for the rest, as that module took them)."""
+    saved = dict(checkpoint.get("hyper_parameters", {}))
+    return TrainConfig.from_record(saved["config"]) if "config" in saved else TrainConfig(**saved)
+
+
 class ContactLightningModule(pl.LightningModule):
     """Trains ``model`` (one of ``diffcontact.models.MODEL_NAMES``) on the chunks of ``task``, or a baseline
     (``BASELINE_NAMES``) on their one-step pairs (batches of ``PairDataset``)."""
 
-    def __init__(self, task: str, model: str = "CM-CD-CLNN", *, built_task: Task | None = None, **settings):
-        """``settings``: those of :meth:`TrainConfig.module_settings` (the default preset's where not given).
-        ``built_task``: ``task`` already built (``build_task``, by a caller that has parsed the task file), used
-        instead of building it again; not a hyperparameter (a checkpoint records ``task``, which builds it)."""
+    def __init__(self, config: TrainConfig | dict, *, built_task: Task | None = None):
+        """``config``: the run's settings (a ``TrainConfig``, or its ``record()`` as a checkpoint holds it).
+        ``built_task``: ``config.task`` already built (``build_task``, by a caller that has parsed the task file), used
+        instead of building it again; not a hyperparameter (a checkpoint records the task, which builds it)."""
         super().__init__()
         quiet_lightning()  # (the module is what brings Lightning in: its notices are quieted wherever it is used)
-        self.config = TrainConfig(task=task, model=model, **settings)
-        # (task, model and the settings given: what load_from_checkpoint passes back)
-        self.save_hyperparameters(ignore=["built_task"])
+        if not isinstance(config, (TrainConfig, dict)):
+            raise TypeError(f"config is a TrainConfig or its record, not {config!r}: e.g. TrainConfig('BP1')")
+        self.config = config if isinstance(config, TrainConfig) else TrainConfig.from_record(config)
+        self.save_hyperparameters({"config": self.config.record()})  # (what load_from_checkpoint passes back)
         self.automatic_optimization = False
-        self.task = build_task(task) if built_task is None else built_task
+        self.task = build_task(self.config.task) if built_task is None else built_task
         # (continues with zero impulses, counts and logs failures, and keeps the first ones: RUN/solver_failures.npz)
         self.solver = ContactSolver(on_failure="count", keep=KEEP_FAILED)
         self._failures_before: Counter[str] = Counter()  # (restored from a checkpoint)
@@ -92,7 +103,7 @@ class ContactLightningModule(pl.LightningModule):
         self.forward_failures = 0  # (this process's)
         self.seconds_before = 0.0  # (the wall time of a resumed run's earlier sessions, from its checkpoint)
         self._fit_started = time.perf_counter()
-        c = self.config
+        c, model = self.config, self.config.model
         net = build_model(
             self.task,
             model,
@@ -118,6 +129,16 @@ class ContactLightningModule(pl.LightningModule):
             self.first_train = FirstStates(c.first_state_chunks, n_points, d, dtype)
             self.first_val = FirstStates(c.first_state_val_chunks, n_points, d, dtype)
             self.first_states = {"train": self.first_train, "val": self.first_val}
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, built_task: Task | None = None) -> ContactLightningModule:
+        """The module saved in the Lightning checkpoint ``path``, on the CPU, with its settings (``saved_config``),
+        weights and counters."""
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+        module = cls(saved_config(checkpoint), built_task=built_task)
+        module.on_load_checkpoint(checkpoint)
+        module.load_state_dict(checkpoint["state_dict"])
+        return module
 
     @property
     def learned(self) -> LearnedParams | None:

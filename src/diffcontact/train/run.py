@@ -31,7 +31,7 @@ from diffcontact.train.coef_start import scan_coefficients
 from diffcontact.train.config import TrainConfig, check_given
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.identify import refine
-from diffcontact.train.module import KEEP_FAILED, ContactLightningModule, quiet_lightning
+from diffcontact.train.module import KEEP_FAILED, ContactLightningModule, quiet_lightning, saved_config
 from diffcontact.train.summary import learned_summary
 
 
@@ -192,8 +192,9 @@ def _resumed(run: RunDir, given: dict, epochs: int | None) -> tuple[TrainConfig,
         if last.is_file():
             checkpoint = torch.load(last, map_location="cpu", weights_only=False)
             done = int(checkpoint["epoch"]) + 1
-            trained = {k: checkpoint["hyper_parameters"][k] for k in ("task", "model")}
-    except (ConfigError, OSError, ValueError, KeyError, RuntimeError, EOFError) as err:
+            saved = saved_config(checkpoint)
+            trained = {k: getattr(saved, k) for k in ("task", "model")}
+    except (ConfigError, OSError, ValueError, KeyError, TypeError, RuntimeError, EOFError) as err:
         raise ConfigError(
             f"--resume: {run.path} is not a readable training run ({run.config.name}, {last.name}): {err}"
         ) from err
@@ -267,7 +268,7 @@ def train_run(
         _record(run, config, accelerator, first)
         started = time.perf_counter()
         pl.seed_everything(config.seed, workers=True)
-        module = ContactLightningModule(**config.module_settings(), built_task=build_task(parsed))
+        module = ContactLightningModule(config, built_task=build_task(parsed))
         start = run.last_checkpoint if resume and run.last_checkpoint.is_file() else None
         patience = stop_patience(data.folder, config)
         trainer, checkpoints = _trainer(run, config, max_epochs, start, progress, accelerator, first, patience)
@@ -349,7 +350,7 @@ def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, process
         best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
     # (the best checkpoint is in this run's folder, also when the folder was moved: _RunCheckpoint)
     built = build_task(data.config) if best else None  # (afresh, from the task file as the run parsed it)
-    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu", built_task=built) if best else module
+    chosen = ContactLightningModule.from_checkpoint(best, built) if best else module
     split, noise = data.splits["train"], recorded_noise(data.folder)
     train = chosen.as_fitted("train", split.chunk_x, split.chunk_v)
     val, write = data.splits["val"], trainer.is_global_zero
@@ -558,7 +559,7 @@ def summarize_run(run: str | Path) -> dict:
     run_dir = RunDir(run)
     old, args = run_dir.read_learned(), run_dir.read_config()["args"]
     best = run_dir.best_checkpoint()  # (in the run's own folder if it was moved)
-    chosen = ContactLightningModule.load_from_checkpoint(best, map_location="cpu")
+    chosen = ContactLightningModule.from_checkpoint(best)
     config = chosen.task.config
     dtype, folder = getattr(torch, args.get("dtype", "float32")), dataset_folder(args["data_root"], config.name)
     train_split, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
