@@ -55,7 +55,7 @@ def test_the_commands_take_the_task_file_by_its_path(example, monkeypatch):
                               "--batch-size", "16", "--no-progress"])  # fmt: skip
     assert res.exit_code == 0, res.output
     res = runner.invoke(app, ["evaluate", "run", "--task", "./box_of_balls.toml", "--no-pictures", "--frames", "10"])
-    assert res.exit_code == 0, res.output
+    assert res.exit_code == 0 and res.output.strip().endswith("-> run/eval"), res.output
     assert json.loads((out / "run" / "eval" / "metrics.json").read_text())["task"] == "box-of-balls"
     res = runner.invoke(app, ["evaluate", "run", "--task", "BP1", "--no-pictures"])
     assert res.exit_code == 2 and "is a run of task 'box-of-balls', not 'BP1'" in res.output

@@ -191,7 +191,7 @@ def test_the_import_and_nominal_evaluation_commands(tmp_path):
     assert res.exit_code == 0, res.output
     out = tmp_path / "nominal"
     res = runner.invoke(app, ["evaluate", "CubeToss", "--nominal", "--data", str(data), "--out", str(out)])
-    assert res.exit_code == 0, res.output
+    assert res.exit_code == 0 and res.output.strip().endswith(f"-> {out}"), res.output
     m = json.loads((out / "metrics.json").read_text())
     assert m["tosses"] == 2 and 0 < m["position_error_pct"] < 100 and m["penetration_pct"] < 2
     with np.load(out / "predictions.npz") as z:

@@ -322,10 +322,12 @@ def evaluate(
         raise typer.BadParameter(f"{on_solver_failure!r} is not raise or count", param_hint="--on-solver-failure")
     failure = "count" if on_solver_failure == "count" else "raise"
     from diffcontact.eval.evaluate import evaluate_nominal, evaluate_run
+    from diffcontact.run_dir import RunDir
 
+    dest = out or (f"runs/{run}-nominal/eval" if nominal else str(RunDir(run).eval_dir()))
     with _user_errors():  # (a bad run or data, a failed solve, a diverging model)
         if nominal:
-            m = evaluate_nominal(run, data or "data", out or f"runs/{run}-nominal/eval", split)
+            m = evaluate_nominal(run, data or "data", dest, split)
         else:
             m = evaluate_run(
                 run, split, data_root=data or None, task=task or None, frames=frames, pictures=pictures,
@@ -335,14 +337,14 @@ def evaluate(
         typer.echo(f"{m['task']} {m['model']}: position error {m['position_error_pct']:.2f} % of the width, "
                    f"rotation {m['rotation_error_deg']:.2f} deg, penetration {m['penetration_pct']:.3f} % "
                    f"({m['tosses']} tosses, {m['frames']} frames); {m['diverged']['tosses']} diverged, "
-                   f"{sum(m['solver']['failures'].values())} failed contact problems counted")  # fmt: skip
+                   f"{sum(m['solver']['failures'].values())} failed contact problems counted -> {dest}")  # fmt: skip
         return
     err5, energy = m["trajectory_error"], m["energy"]
     half = "n/a" if err5["ci95"] is None else f"{err5['ci95']:.3g}"
     typer.echo(f"{m['task']} {m['model']}: {err5['steps']}-step error {err5['mean']:.4g} ± {half} (95 %, "
                f"{m['n_trajectories']} trajectories); energy within {energy['max_rel_deviation_max']:.3g} of the "
                f"energy in motion over {energy['frames']} frames; {m['diverged']['trajectories']} trajectories "
-               f"diverged -> {run}/eval/")  # fmt: skip
+               f"diverged -> {dest}")  # fmt: skip
 
 
 def _split(values: list[str]) -> list[str]:
