@@ -9,6 +9,7 @@ import torch
 
 import diffcontact as dc
 from diffcontact.models import build_model
+from diffcontact.train.config import TrainConfig
 from diffcontact.train.module import ContactLightningModule
 
 # task, (μ, e) to start from (the truth: (0.2, 0.8), (0.5, 0.5), (—, 0), (0.1, 0.8)), whether e must move toward the
@@ -76,7 +77,7 @@ def test_a_step_with_extreme_learned_moments_solves_every_contact(name, log_mome
     converge (no impulse replaced by zero) and its loss and gradients are finite.  (The effective mass formed as
     the difference of paper Eq. 8 was indefinite at 0.4 % for the gyroscope at e^8 in float32: an input error.
     At e^-12 the learned flow itself diverges within a chunk, angular accelerations of 1e5 times the truth.)"""
-    module = ContactLightningModule(name, hidden=16, layers=1)
+    module = ContactLightningModule(TrainConfig(name, hidden=16, layers=1))
     with torch.no_grad():
         module.net.params.log_moments.fill_(log_moment)
     X, V = _contact_chunks(module.task, 16, seed=1)

@@ -9,7 +9,7 @@ from solver_oracle import random_instance
 
 from diffcontact.solver import kernel, kkt, least_norm, scaling, solve_cone_qp
 from diffcontact.solver.kkt import contact_dims
-from diffcontact.solver.problem import _solve_with_retries
+from diffcontact.solver.problem import ConeQP, SolveOptions, _solve_with_retries
 
 
 def _solved_batch(K, d, seed):
@@ -19,7 +19,7 @@ def _solved_batch(K, d, seed):
     A, q, mu, lower = random_instance(gen, B, K, d)
     mu[:3] = 0.0
     active = torch.rand(B, K, generator=gen) > 0.2
-    return _solve_with_retries(A, q, mu, lower, active, d, 1e-10, 1e-7, 60, "count")[1]
+    return _solve_with_retries(ConeQP(A, q, mu, lower, active, d), SolveOptions(1e-10, 1e-7, 60, "count"))[1]
 
 
 @pytest.mark.parametrize("d", [1, 2, 3])

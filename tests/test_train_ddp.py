@@ -10,6 +10,7 @@ import sys
 import pytest
 
 from diffcontact.data.generate import generate_dataset
+from diffcontact.train.config import TrainConfig
 from diffcontact.train.module import ContactLightningModule
 from diffcontact.train.run import train_run
 
@@ -56,7 +57,7 @@ def test_two_processes_learn_what_one_learns_and_sum_their_counters(data_root, t
     assert two["processes"] == 2 and two["epochs_trained"] == one["epochs_trained"] == 8
     # both processes' steps counted: 8 chunks each, 2 batches of 4 an epoch, 8 epochs
     assert two["forward_failures"] == 2 * 2 * 8 and two["skipped_steps"] == 0
-    start = ContactLightningModule("BP1").learned  # (seed 0, as both runs)
+    start = ContactLightningModule(TrainConfig("BP1")).learned  # (seed 0, as both runs)
     for key in ("mu", "e"):  # (another batch order: the same change from the start within a quarter of it)
         a, b, s = one[key]["learned"][0], two[key]["learned"][0], float(getattr(start, key).detach()[0])
         assert abs(a - s) > 0.1 and abs(b - a) < 0.25 * abs(a - s), (key, s, a, b)
