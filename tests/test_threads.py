@@ -158,7 +158,7 @@ def test_bench_train_on_a_small_task(tmp_path, restore_threads):
     result = json.loads(out.read_text())
     assert result["header"]["torch_threads"] == 1 and result["header"]["busy"] == 1
     (row,) = result["rows"]
-    assert row["task"] == "BP5-e" and row["model"] == "CM-CD-CLNN"
+    assert row["task"] == "BP5-e" and row["model"] == "CM-CD-CLNN" and row["batch"] == 4
     assert row["step"] == pytest.approx(row["forward"] + row["backward"] + row["optimiser"])
     assert 0 <= row["contact_share_cpu"] <= 1
     for key in ("cpu", "dynamics", "contact", "optimiser", "step_no_contacts", "step_busy", "busy_ratio"):
@@ -166,6 +166,16 @@ def test_bench_train_on_a_small_task(tmp_path, restore_threads):
     assert "| BP5-e | CM-CD-CLNN |" in res.output
     res = CliRunner().invoke(app, ["bench", "train", "BP5-e", "--models", "XX"])
     assert res.exit_code == 2 and "model = 'XX' is not one of" in res.output
+
+
+def test_bench_train_times_the_model_and_batch_that_train_makes_by_default():
+    """The task file's settings (the Rope's linked potential) and the default preset's batch of 50 chunks."""
+    from diffcontact.bench.train import StepTimer, synthetic_batch
+    from diffcontact.models.params import LinkedPotential
+
+    data, _ = synthetic_batch("Rope", "CM-CD-CLNN", 2)
+    timer = StepTimer("Rope", "CM-CD-CLNN", data)
+    assert isinstance(timer.module.net.params.potential, LinkedPotential) and timer.module.config.batch_size == 50
 
 
 def test_bench_train_flags_a_step_without_contacts_slower_than_with_them():

@@ -558,7 +558,9 @@ def control_throw(
 def bench_train(
     tasks: list[str] = typer.Argument(None, help="Tasks (default: the 8 benchmark tasks)."),
     models: list[str] = typer.Option(["CM-CD-CLNN"], "--models", "-m", help="Models (repeat the option for several)."),
-    batch: int = typer.Option(200, "--batch", help="Chunks per step (200: the published preset's batch)."),
+    batch: int = typer.Option(
+        None, "--batch", min=1, help="Chunks per step (default: the task's training batch, 50; the published one 200)."
+    ),
     warmup: int = typer.Option(2, help="Untimed steps first."),
     repeats: int = typer.Option(15, help="Timed steps (medians reported)."),
     busy: int = typer.Option(0, "--busy", help="Also time the step beside this many busy processes (started here)."),
@@ -568,8 +570,9 @@ def bench_train(
         1, "--threads", min=1, help="Threads of torch, numba and the contact solver (default 1: as `train` runs)."
     ),
 ) -> None:
-    """Time of one training step (forward, backward, optimiser) per task and model: dynamics, contact model and
-    optimiser, beside the same step with contacts disabled (float32, synthetic chunks from the task's simulator)."""
+    """Time of one training step (forward, backward, optimiser) per task and model, as `train` makes it with its
+    defaults: dynamics, contact model and optimiser, beside the same step with contacts disabled (float32, synthetic
+    chunks from the task's simulator)."""
     from diffcontact.bench.train import run_train_benchmark
 
     _threads(threads)

@@ -1,9 +1,11 @@
 """Training-step benchmark: the time of one training step per task and model, split into its parts.
 
-A step is what ``ContactLightningModule.training_step`` does: the loss of a batch of 5-frame chunks (forward), its
-backward pass, and the optimiser (AdamW, the finiteness check, the projection of μ and e).  It is timed twice side by
-side, alternating: as is, and with contacts disabled (the same model and parameters, a detector that finds none).
-The parts are
+A step is what ``ContactLightningModule.training_step`` does in ``diffcontact train`` with its defaults: the model and
+settings of the task's default training (``TrainConfig.resolve``: the task file's potential, for example) and, unless
+given, its batch (50 chunks with the default preset; the published preset's is 200).  It is the loss of a batch of
+5-frame chunks (forward), its backward pass, and the optimiser (AdamW, the finiteness check, the projection of μ and
+e).  It is timed twice side by side, alternating: as is, and with contacts disabled (the same model and parameters,
+a detector that finds none).  The parts are
 
 - dynamics: forward + backward without contacts (the Lagrangian or Hamiltonian field, ∇V of the potential network,
   RK4, the loss);
@@ -51,7 +53,6 @@ from diffcontact.systems import BENCHMARK_TASKS, build_task
 from diffcontact.train.config import TrainConfig
 from diffcontact.train.module import ContactLightningModule
 
-BATCH = 200  # chunks per step: the published preset's batch (the default preset's is 50)
 # a CPU-bound loop that dies with the benchmark, even if that is killed outright (Linux PR_SET_PDEATHSIG = 1, SIGKILL)
 BUSY_LOOP = """
 import ctypes, os, sys
@@ -90,7 +91,7 @@ class StepTimer:
     """One model's training step on one batch, timed by part; ``contacts`` False disables them (the same params)."""
 
     def __init__(self, task: str, model: str, batch: tuple[torch.Tensor, ...], seed: int = 0):
-        self.module = ContactLightningModule(TrainConfig(task, model, seed=seed, dtype="float32"))
+        self.module = ContactLightningModule(TrainConfig.resolve(task, model, seed=seed, dtype="float32"))
         self.batch = batch
         opt = self.module.configure_optimizers()
         self.opt = opt["optimizer"] if isinstance(opt, dict) else opt
@@ -232,7 +233,7 @@ def _ms(x: float | None) -> str:
 def run_train_benchmark(
     tasks=None,
     models=("CM-CD-CLNN",),
-    batch: int = BATCH,
+    batch: int | None = None,
     warmup: int = 2,
     repeats: int = 15,
     seed: int = 0,
@@ -240,15 +241,16 @@ def run_train_benchmark(
     out: str | None = None,
     echo=print,
 ) -> dict:
-    """Time a training step per task and model (see the module docstring); print a Markdown table and return
-    ``{"header": ..., "rows": [...]}`` (times in s), also written as JSON to ``out`` if given."""
+    """Time a training step per task and model (see the module docstring) on ``batch`` chunks (None: the task's
+    training batch); print a Markdown table and return ``{"header": ..., "rows": [...]}`` (times in s), also written
+    as JSON to ``out`` if given."""
     names = list(tasks or BENCHMARK_TASKS)
     known = list(MODEL_NAMES) + list(BASELINE_NAMES)
     for m in models:
         if m not in known:
             raise ConfigError(f"model = {m!r} is not one of {known}")
     for name, value, lo in (("batch", batch, 1), ("repeats", repeats, 1), ("warmup", warmup, 0), ("busy", busy, 0)):
-        if value < lo:
+        if value is not None and value < lo:
             raise ConfigError(f"{name} = {value} is not >= {lo}")
     import numba
 
@@ -271,11 +273,12 @@ def run_train_benchmark(
     echo(
         f"diffcontact {header['diffcontact']}, torch {header['torch']}, python {header['python']}, "
         f"{header['machine']}, {header['cpus']} CPUs, {header['torch_threads']} torch / {header['numba_threads']} "
-        f"solver threads, OMP_WAIT_POLICY={header['omp_wait_policy'] or 'unset'}; {batch} chunks of 5 frames, "
+        f"solver threads, OMP_WAIT_POLICY={header['omp_wait_policy'] or 'unset'}; "
+        f"{batch or 'the training batch of'} chunks of 5 frames, "
         f"float32; medians of {repeats} steps after {warmup}; load average {header['load_average_before'][0]:.2f}"
     )
-    cols = "| task | model | chunks colliding | step (ms) | step CPU | dynamics | contact | optimiser | contact share "
-    cols += "| step without contacts | contact fwd (measured) | contact share (CPU) |"
+    cols = "| task | model | chunks | colliding | step (ms) | step CPU | dynamics | contact | optimiser "
+    cols += "| contact share | step without contacts | contact fwd (measured) | contact share (CPU) |"
     if busy:
         cols += f" step beside {busy} busy | slowdown |"
     echo(cols)
@@ -286,13 +289,14 @@ def run_train_benchmark(
         signal_all(procs, signal.SIGSTOP)
         for name in names:
             for model in models:
-                data, colliding = synthetic_batch(name, model, batch, seed)
+                chunks = batch or TrainConfig.resolve(name, model).batch_size
+                data, colliding = synthetic_batch(name, model, chunks, seed)
                 timer = StepTimer(name, model, data, seed)
-                row = {"task": name, "model": model, "colliding": colliding}
+                row = {"task": name, "model": model, "batch": chunks, "colliding": colliding}
                 row.update(time_model(timer, warmup, repeats, procs))
                 rows.append(row)
                 line = (
-                    f"| {name} | {model} | {colliding:.0%} | {_ms(row['step'])} | {_ms(row['cpu'])} | "
+                    f"| {name} | {model} | {chunks} | {colliding:.0%} | {_ms(row['step'])} | {_ms(row['cpu'])} | "
                     f"{_ms(row.get('dynamics'))} | "
                     f"{_ms(row.get('contact'))} | {_ms(row['optimiser'])} | "
                     + ("–" if "contact_share" not in row or row["disturbed"] else f"{row['contact_share']:.0%}")
