@@ -48,7 +48,7 @@ import diffcontact
 from diffcontact.data.generate import make_split
 from diffcontact.errors import ConfigError
 from diffcontact.files import atomic_write
-from diffcontact.models import BASELINE_NAMES, MODEL_NAMES, ContactModelNet
+from diffcontact.models import ALL_MODELS, BASELINE_NAMES, ContactModelNet
 from diffcontact.systems import BENCHMARK_TASKS, build_task
 from diffcontact.train.config import TrainConfig
 from diffcontact.train.module import ContactLightningModule
@@ -245,10 +245,9 @@ def run_train_benchmark(
     training batch); print a Markdown table and return ``{"header": ..., "rows": [...]}`` (times in s), also written
     as JSON to ``out`` if given."""
     names = list(tasks or BENCHMARK_TASKS)
-    known = list(MODEL_NAMES) + list(BASELINE_NAMES)
     for m in models:
-        if m not in known:
-            raise ConfigError(f"model = {m!r} is not one of {known}")
+        if m not in ALL_MODELS:
+            raise ConfigError(f"model = {m!r} is not one of {list(ALL_MODELS)}")
     for name, value, lo in (("batch", batch, 1), ("repeats", repeats, 1), ("warmup", warmup, 0), ("busy", busy, 0)):
         if value is not None and value < lo:
             raise ConfigError(f"{name} = {value} is not >= {lo}")

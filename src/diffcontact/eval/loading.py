@@ -48,7 +48,7 @@ def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
     train, and a missing or unreadable checkpoint.
     """
     from diffcontact.config import load_task
-    from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+    from diffcontact.models import ALL_MODELS
     from diffcontact.systems.registry import build_task
 
     run = Path(run)
@@ -57,9 +57,8 @@ def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
     built = build_task(name)
     if task is not None and built.config.name != load_task(task).name:
         raise ConfigError(f"{run} is a run of task {built.config.name!r}, not {task!r}")
-    known = (*MODEL_NAMES, *BASELINE_NAMES)
-    if model not in known:
-        raise ConfigError(f"{run}: model {model!r} is not one that diffcontact trains: {list(known)}")
+    if model not in ALL_MODELS:
+        raise ConfigError(f"{run}: model {model!r} is not one that diffcontact trains: {list(ALL_MODELS)}")
     checkpoint = RunDir(run).best_checkpoint()
     net = trained_net(run, config, checkpoint)
     return LoadedRun(run_dir=run, config=config, checkpoint=checkpoint, task=built, net=net.eval())

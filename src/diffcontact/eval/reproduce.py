@@ -29,12 +29,12 @@ from diffcontact.eval.backends import Backend, cell_runner
 from diffcontact.eval.evaluate import evaluated
 from diffcontact.eval.report import write_report
 from diffcontact.files import write_json
-from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+from diffcontact.models import ALL_MODELS
 from diffcontact.run_dir import RunDir
 from diffcontact.systems.registry import BENCHMARK_TASKS
 from diffcontact.threads import thread_env
 
-MODELS = (*MODEL_NAMES, *BASELINE_NAMES)
+MODELS = ALL_MODELS
 # --quick: tiny datasets, one epoch, short rollouts (tests the pipeline, not the method)
 QUICK = {"n_train": 16, "n_val": 4, "n_test": 5, "frames": 30, "epochs": 1, "batch_size": 8, "eval_frames": 20}
 

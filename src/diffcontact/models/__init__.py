@@ -4,4 +4,14 @@ from diffcontact.models.baselines import BASELINE_NAMES
 from diffcontact.models.model import MODEL_NAMES, ContactModelNet, build_model
 from diffcontact.models.params import LearnedParams, MLPPotential
 
-__all__ = ["BASELINE_NAMES", "MODEL_NAMES", "ContactModelNet", "LearnedParams", "MLPPotential", "build_model"]
+ALL_MODELS = (*MODEL_NAMES, *BASELINE_NAMES)  # every model build_model builds and diffcontact train trains
+
+__all__ = [
+    "ALL_MODELS",
+    "BASELINE_NAMES",
+    "MODEL_NAMES",
+    "ContactModelNet",
+    "LearnedParams",
+    "MLPPotential",
+    "build_model",
+]

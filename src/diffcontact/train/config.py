@@ -16,7 +16,7 @@ from pathlib import Path
 
 from diffcontact.config import TaskConfig, load_task
 from diffcontact.errors import ConfigError
-from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
+from diffcontact.models import ALL_MODELS, BASELINE_NAMES, MODEL_NAMES
 from diffcontact.models.params import E_TRANSFORMS, MU_TRANSFORMS, POTENTIALS
 from diffcontact.run_dir import CONFIG
 
@@ -73,7 +73,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.task, str) or not self.task:
             raise ConfigError(f"task = {self.task!r} is not a task's name or a task file's path")
-        _one_of("model", self.model, (*MODEL_NAMES, *BASELINE_NAMES))
+        _one_of("model", self.model, ALL_MODELS)
         _one_of("preset", self.preset, PRESETS)
         _one_of("schedule", self.schedule, SCHEDULES)
         _one_of("train_loss", self.train_loss, TRAIN_LOSSES)
