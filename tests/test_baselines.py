@@ -257,7 +257,8 @@ def test_mlp_cd_clnn_fits_the_velocity_jump_of_the_collision_pairs():
 
 def test_the_opt_in_mse_training_loss_of_a_one_step_pair():
     """train_loss="mse" (docs/baselines.md: under L1 the collision networks converge to Δv = 0) is half the mean
-    squared error of the pair's two frames; L1 stays the default and unknown losses are refused."""
+    squared error of the pair's two frames, in training and validation (which chooses the checkpoint); L1 stays the
+    default and unknown losses are refused."""
     from diffcontact.train.config import TrainConfig
     from diffcontact.train.module import ContactLightningModule
 
@@ -270,7 +271,7 @@ def test_the_opt_in_mse_training_loss_of_a_one_step_pair():
     expected = 0.5 * (((px - x) ** 2).mean() + ((pv - v) ** 2).mean())
     l1 = 0.5 * ((px - x).abs().mean() + (pv - v).abs().mean())
     assert torch.allclose(module.train().loss(batch), expected) and torch.allclose(module.loss(batch, "l1"), l1)
-    assert torch.allclose(module.eval().loss(batch), l1)  # (validation)
+    assert torch.allclose(module.eval().loss(batch), expected)  # (validation: the same objective)
     assert module.config.train_loss == "mse" and module.hparams["config"]["train_loss"] == "mse"
     with pytest.raises(ConfigError, match="train_loss = 'huber' is not one of"):
         TrainConfig("BP1", "MLP-CD-CLNN", hidden=8, layers=1, train_loss="huber")

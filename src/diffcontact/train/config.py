@@ -21,7 +21,7 @@ from diffcontact.models.params import E_TRANSFORMS, MU_TRANSFORMS, POTENTIALS
 from diffcontact.run_dir import CONFIG
 
 SCHEDULES = ("constant", "cosine")  # of the learning rate over the epochs
-TRAIN_LOSSES = ("l1", "mse")  # the training loss; validation is always L1 (val/loss, checkpoint selection)
+TRAIN_LOSSES = ("l1", "mse")  # the training loss, and val/loss's (which chooses the checkpoint)
 COEF_STARTS = ("random", "scan")  # where μ and e start: train/coef_start.py
 DTYPES = ("float32", "float64")
 

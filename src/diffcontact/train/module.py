@@ -193,10 +193,11 @@ class ContactLightningModule(pl.LightningModule):
 
     def loss(self, batch, kind: str | None = None, first: tuple | None = None) -> torch.Tensor:
         """Mean absolute (``kind`` "l1") or squared ("mse") error of the predicted chunk: x, v (B, L, P, d); a
-        baseline's one-step pair (x0, v0, x1, v1, ...) is the chunk of its two frames.  ``kind`` None: the
-        ``train_loss`` in training mode, L1 otherwise (validation).  ``first``: corrections dx, dv (B, P, d) of the
-        chunks' first frames (learned first states), or None."""
-        kind = kind or (self.config.train_loss if self.training else "l1")
+        baseline's one-step pair (x0, v0, x1, v1, ...) is the chunk of its two frames.  ``kind`` None: the run's
+        ``train_loss``, in training and in validation (val/loss chooses the checkpoint by the objective the run
+        minimises: an MSE run chosen by its L1 kept a worse model, docs/baselines.md).  ``first``: corrections dx,
+        dv (B, P, d) of the chunks' first frames (learned first states), or None."""
+        kind = kind or self.config.train_loss
         x, v = batch[0], batch[1]
         if self.baseline:
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
