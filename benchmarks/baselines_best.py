@@ -32,13 +32,12 @@ import torch
 
 from diffcontact.data.dataset import PairDataset
 from diffcontact.data.store import dataset_folder, load_split
-from diffcontact.eval.loading import trained_net
+from diffcontact.eval.loading import load_run
 from diffcontact.eval.metrics import mean_interval, relative_error, trajectory_error
 from diffcontact.eval.rollouts import ground_truth, predict
 from diffcontact.files import write_json, write_text
 from diffcontact.models import BASELINE_NAMES
 from diffcontact.run_dir import RunDir
-from diffcontact.systems.registry import build_task
 from diffcontact.train.run import train_run
 
 LOSSES = ("l1", "mse")
@@ -90,11 +89,10 @@ def collision_pairs(net, folder: Path, split: str, config) -> dict:
 
 def score(path: Path, checkpoint: Path, split: str, data: str) -> dict:
     """A checkpoint of the run on ``split``: 5-step error and collision-pair error, each beside constant velocity."""
-    config = RunDir(path).read_config()
-    task = build_task(config["args"]["task"])
-    net = trained_net(path, config, checkpoint).eval()
-    folder = dataset_folder(data, task.config.name)
-    x, v, _, dt = ground_truth(folder, split, 5, task.config)
+    loaded = load_run(path, checkpoint=checkpoint)
+    net, config = loaded.net, loaded.task.config
+    folder = dataset_folder(data, loaded.task_name)
+    x, v, _, dt = ground_truth(folder, split, 5, config)
     xh, vh = predict(net, x[:, 0], v[:, 0], 5)
     xc, vc = constant_velocity(x[:, 0], v[:, 0], 5, dt)
     mean, half, diverged = five_step(xh, vh, x, v)
@@ -105,7 +103,7 @@ def score(path: Path, checkpoint: Path, split: str, data: str) -> dict:
         "ci95": half,
         "diverged": diverged,
         "constant_velocity": const,
-        "collision_pairs": collision_pairs(net, folder, split, task.config),
+        "collision_pairs": collision_pairs(net, folder, split, config),
     }
 
 

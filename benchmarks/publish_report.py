@@ -17,8 +17,8 @@ import shutil
 from pathlib import Path
 
 from diffcontact.eval.report import write_report
-from diffcontact.eval.reproduce import MODELS
 from diffcontact.files import write_text
+from diffcontact.models import ALL_MODELS
 from diffcontact.systems.registry import BENCHMARK_TASKS
 
 START, END = "<!-- report:start -->", "<!-- report:end -->"
@@ -28,7 +28,7 @@ MAX_FIGURE = 200_000  # bytes: larger figures stay in OUT (docs/ holds small PNG
 def publish(out: Path, docs: Path) -> Path:
     """Regenerate OUT's report and put it into docs/results.md; returns the page's path."""
     settings = json.loads((out / "reproduce.json").read_text())
-    report = write_report(out, list(BENCHMARK_TASKS), list(MODELS), [0], settings).read_text()
+    report = write_report(out, list(BENCHMARK_TASKS), list(ALL_MODELS), [0], settings).read_text()
     figures = docs / "figures" / "reproduction"
     figures.mkdir(parents=True, exist_ok=True)
     for png in sorted((out / "figures").glob("*.png")):

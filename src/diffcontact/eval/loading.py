@@ -40,8 +40,9 @@ class LoadedRun:
         return self.config["args"]["model"]
 
 
-def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
-    """Load a run's best model from its checkpoint (``trained_net``).
+def load_run(run: str | Path, task: str | None = None, checkpoint: Path | None = None) -> LoadedRun:
+    """Load a run's best model from its checkpoint (``trained_net``), or the model of ``checkpoint`` (another of
+    the run's checkpoints, e.g. its last).
 
     ``task``: the task the caller expects (a packaged task's name or a task file's path, compared by task name); a
     run of another task is a ConfigError, as are a missing config, a model that ``diffcontact train`` does not
@@ -59,7 +60,7 @@ def load_run(run: str | Path, task: str | None = None) -> LoadedRun:
         raise ConfigError(f"{run} is a run of task {built.config.name!r}, not {task!r}")
     if model not in ALL_MODELS:
         raise ConfigError(f"{run}: model {model!r} is not one that diffcontact trains: {list(ALL_MODELS)}")
-    checkpoint = RunDir(run).best_checkpoint()
+    checkpoint = checkpoint or RunDir(run).best_checkpoint()
     net = trained_net(run, config, checkpoint)
     return LoadedRun(run_dir=run, config=config, checkpoint=checkpoint, task=built, net=net.eval())
 

@@ -34,7 +34,6 @@ from diffcontact.run_dir import RunDir
 from diffcontact.systems.registry import BENCHMARK_TASKS
 from diffcontact.threads import thread_env
 
-MODELS = ALL_MODELS
 # --quick: tiny datasets, one epoch, short rollouts (tests the pipeline, not the method)
 QUICK = {"n_train": 16, "n_val": 4, "n_test": 5, "frames": 30, "epochs": 1, "batch_size": 8, "eval_frames": 20}
 
@@ -253,13 +252,13 @@ def reproduce(
     """
     from diffcontact.data.generate import generate_dataset
 
-    tasks, models, seeds = list(tasks or BENCHMARK_TASKS), list(models or MODELS), list(seeds or [0])
+    tasks, models, seeds = list(tasks or BENCHMARK_TASKS), list(models or ALL_MODELS), list(seeds or [0])
     for task in tasks:
         if task not in available_tasks():
             raise ConfigError(f"task {task!r} is not one of {available_tasks()}")
     for model in models:
-        if model not in MODELS:
-            raise ConfigError(f"model {model!r} is not one of {list(MODELS)}")
+        if model not in ALL_MODELS:
+            raise ConfigError(f"model {model!r} is not one of {list(ALL_MODELS)}")
     if jobs < 1:
         raise ConfigError(f"jobs = {jobs} is not >= 1")
     if threads < 1:
