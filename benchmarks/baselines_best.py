@@ -11,9 +11,11 @@ paper's), cosine schedule, ``--epochs`` each.  Two checkpoints of a run are scor
 validation loss and its last.  Each is scored on the validation split by the 5-step error of Fig. 3
 (``diffcontact.eval.metrics``) and by the one-step error on the pairs whose second frame holds a collision (the
 relative error of the state, as Fig. 3 measures it), both against a constant-velocity predictor (x' = x + v dt,
-v' = v) on the same frames: a model whose collision response is learned is below it there.  Every run is a
-resumable run directory (OUT/TASK/MODEL/LOSS-lrLR); a finished one is not trained again.  Prints a markdown table
-of every run and writes it to OUT/TASK/best.md, with the setting chosen for each model in OUT/TASK/best.json.
+v' = v) and the collapse level (the true smooth flow with no velocity jump: what a CLNN baseline whose flow is
+right and whose jump is 0 scores) on the same frames: a model whose collision response is learned is below them.
+Every run is a resumable run directory (OUT/TASK/MODEL/LOSS-lrLR); a finished one is not trained again.  Prints a
+markdown table of every run and writes it to OUT/TASK/best.md, with the setting chosen for each model in
+OUT/TASK/best.json.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from diffcontact.eval.rollouts import ground_truth, predict
 from diffcontact.files import write_json, write_text
 from diffcontact.models import BASELINE_NAMES
 from diffcontact.run_dir import RunDir
+from diffcontact.simulator import simulator_for
 from diffcontact.train.run import train_run
 
 LOSSES = ("l1", "mse")
@@ -67,6 +70,17 @@ def constant_velocity(x0: torch.Tensor, v0: torch.Tensor, frames: int, dt: float
     return x0[:, None] + t * v0[:, None], v0[:, None].expand(-1, frames, -1, -1)
 
 
+def no_jump(task, x0: torch.Tensor, v0: torch.Tensor, frames: int):
+    """The collapse level's rollout: the task's true smooth flow (RK4, true inertia and potential), no contacts."""
+    sim, xs, vs = simulator_for(task), [x0], [v0]
+    with torch.no_grad():
+        for _ in range(frames - 1):
+            x, v = sim.flow(task.params, xs[-1], vs[-1], task.dt)
+            xs.append(x)
+            vs.append(v)
+    return torch.stack(xs, 1), torch.stack(vs, 1)
+
+
 def five_step(x_hat, v_hat, x, v) -> tuple[float, float | None, int]:
     """Fig. 3's 5-step error (mean, 95 % half-width) and the trajectories that diverged."""
     rel = relative_error(x_hat, v_hat, x, v, diverged_ok=True)
@@ -74,9 +88,10 @@ def five_step(x_hat, v_hat, x, v) -> tuple[float, float | None, int]:
     return mean, half, int((~torch.isfinite(rel)).any(1).sum())
 
 
-def collision_pairs(net, folder: Path, split: str, config) -> dict:
-    """One-step relative error on the split's pairs with a collision: the model's and constant velocity's (means)."""
-    pairs = PairDataset(load_split(folder, split, config))
+def collision_pairs(net, folder: Path, split: str, task) -> dict:
+    """One-step relative error on the split's pairs with a collision: the model's, constant velocity's and the
+    collapse level's (means)."""
+    pairs = PairDataset(load_split(folder, split, task.config))
     hit = pairs.collision
     x0, v0, x1, v1 = (t[hit].double() for t in (pairs.x0, pairs.v0, pairs.x1, pairs.v1))
     xh, vh = predict(net, x0, v0, 2)
@@ -84,26 +99,35 @@ def collision_pairs(net, folder: Path, split: str, config) -> dict:
     truth = (x1[:, None], v1[:, None])
     model = relative_error(xh[:, 1:], vh[:, 1:], *truth, diverged_ok=True)[:, 0]
     const = relative_error(xc[:, 1:], vc[:, 1:], *truth)[:, 0]
-    return {"pairs": int(hit.sum()), "model": float(model.mean()), "constant_velocity": float(const.mean())}
+    xn, vn = no_jump(task, x0, v0, 2)
+    level = relative_error(xn[:, 1:], vn[:, 1:], *truth)[:, 0]
+    return {
+        "pairs": int(hit.sum()),
+        "model": float(model.mean()),
+        "constant_velocity": float(const.mean()),
+        "no_jump": float(level.mean()),
+    }
 
 
 def score(path: Path, checkpoint: Path, split: str, data: str) -> dict:
     """A checkpoint of the run on ``split``: 5-step error and collision-pair error, each beside constant velocity."""
     loaded = load_run(path, checkpoint=checkpoint)
-    net, config = loaded.net, loaded.task.config
+    net, task, config = loaded.net, loaded.task, loaded.task.config
     folder = dataset_folder(data, loaded.task_name)
     x, v, _, dt = ground_truth(folder, split, 5, config)
     xh, vh = predict(net, x[:, 0], v[:, 0], 5)
     xc, vc = constant_velocity(x[:, 0], v[:, 0], 5, dt)
     mean, half, diverged = five_step(xh, vh, x, v)
     const, _, _ = five_step(xc, vc, x, v)
+    level, _, _ = five_step(*no_jump(task, x[:, 0], v[:, 0], 5), x, v)
     return {
         "checkpoint": checkpoint.name,
         "five_step": mean,
         "ci95": half,
         "diverged": diverged,
         "constant_velocity": const,
-        "collision_pairs": collision_pairs(net, folder, split, config),
+        "no_jump": level,
+        "collision_pairs": collision_pairs(net, folder, split, task),
     }
 
 
@@ -145,8 +169,9 @@ def main() -> None:
             print("trained", done, flush=True)
     rows, best = [], {}
     header = (
-        "| model | loss | lr | checkpoint | val 5-step | val collision pairs (constant velocity) "
-        "| test 5-step (± 95 %) | test collision pairs (constant velocity) |\n|---|---|---|---|---|---|---|---|"
+        "| model | loss | lr | checkpoint | val 5-step | val collision pairs (constant velocity; no jump) "
+        "| test 5-step (± 95 %) | test collision pairs (constant velocity; no jump) |\n"
+        "|---|---|---|---|---|---|---|---|"
     )
     for m in models:
         scored = []
@@ -159,14 +184,15 @@ def main() -> None:
                     vc, tc = val["collision_pairs"], test["collision_pairs"]
                     rows.append(
                         f"| {m} | {loss} | {lr:g} | {which} (epoch {_epoch(ckpt)}) | {val['five_step']:.4g} "
-                        f"| {vc['model']:.4g} ({vc['constant_velocity']:.4g}) "
+                        f"| {vc['model']:.4g} ({vc['constant_velocity']:.4g}; {vc['no_jump']:.4g}) "
                         f"| {test['five_step']:.4g} ± {test['ci95']:.2g}{_diverged(test)} "
-                        f"| {tc['model']:.4g} ({tc['constant_velocity']:.4g}) |"
+                        f"| {tc['model']:.4g} ({tc['constant_velocity']:.4g}; {tc['no_jump']:.4g}) |"
                     )
         chosen = min(scored, key=lambda s: s[0])
         best[m] = dict(zip(("loss", "lr", "checkpoint", "val", "test"), chosen[1:]))
-    cv = best[models[0]]["test"]["constant_velocity"]
-    table = header + "\n" + "\n".join(rows) + f"\n\nconstant velocity, test 5-step: {cv:.4g}\n"
+    ref = best[models[0]]["test"]
+    table = header + "\n" + "\n".join(rows)
+    table += f"\n\ntest 5-step: constant velocity {ref['constant_velocity']:.4g}, no jump {ref['no_jump']:.4g}\n"
     chosen = (f"{m} {b['loss']} lr {b['lr']:g} {b['checkpoint']}" for m, b in best.items())
     table += "chosen on validation: " + ", ".join(chosen) + "\n"
     print(table)
