@@ -47,6 +47,7 @@ from diffcontact.data.dataset import PairDataset
 from diffcontact.data.store import dataset_folder, load_split
 from diffcontact.eval.metrics import mean_interval, relative_error, trajectory_error
 from diffcontact.eval.rollouts import ground_truth
+from diffcontact.models.baselines.base import mlp
 from diffcontact.models.baselines.graphs import EQUALITY, relation_graph
 from diffcontact.state import State
 
@@ -128,8 +129,6 @@ def measure(task_name: str, data: str, split: str) -> dict:
 
 def fit_curve(task_name: str, data: str, split: str, sizes: list[int], steps: int, seed: int) -> dict:
     """The jump MLP fitted alone on n training collisions for each n of ``sizes`` (0: the chunks' own)."""
-    from diffcontact.models.baselines.base import mlp
-
     task = build_task(task_name)
     sim, params = simulator_for(task), task.params
     folder = dataset_folder(data, task_name)
