@@ -110,7 +110,8 @@ def collision_pairs(net, folder: Path, split: str, task) -> dict:
 
 
 def score(path: Path, checkpoint: Path, split: str, data: str) -> dict:
-    """A checkpoint of the run on ``split``: 5-step error and collision-pair error, each beside constant velocity."""
+    """A checkpoint of the run on ``split``: 5-step error and collision-pair error, each beside constant velocity
+    and the collapse level."""
     loaded = load_run(path, checkpoint=checkpoint)
     net, task, config = loaded.net, loaded.task, loaded.task.config
     folder = dataset_folder(data, loaded.task_name)
