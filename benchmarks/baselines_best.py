@@ -27,11 +27,13 @@ import diffcontact  # noqa: F401  (before torch: it sets OpenMP's wait policy)
 import argparse
 import re
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from multiprocessing import get_context
 from pathlib import Path
 
 import torch
 
+from diffcontact.bench.train import NoContacts
 from diffcontact.data.dataset import PairDataset
 from diffcontact.data.store import dataset_folder, load_split
 from diffcontact.eval.loading import load_run
@@ -41,6 +43,7 @@ from diffcontact.files import write_json, write_text
 from diffcontact.models import BASELINE_NAMES
 from diffcontact.run_dir import RunDir
 from diffcontact.simulator import simulator_for
+from diffcontact.state import State
 from diffcontact.train.run import train_run
 
 LOSSES = ("l1", "mse")
@@ -71,14 +74,13 @@ def constant_velocity(x0: torch.Tensor, v0: torch.Tensor, frames: int, dt: float
 
 
 def no_jump(task, x0: torch.Tensor, v0: torch.Tensor, frames: int):
-    """The collapse level's rollout: the task's true smooth flow (RK4, true inertia and potential), no contacts."""
-    sim, xs, vs = simulator_for(task), [x0], [v0]
+    """The collapse level's rollout: the task's simulator with true parameters and contacts disabled (its smooth
+    flow alone)."""
+    sim = simulator_for(task)
+    bare = replace(sim, system=replace(sim.system, detector=NoContacts()))
     with torch.no_grad():
-        for _ in range(frames - 1):
-            x, v = sim.flow(task.params, xs[-1], vs[-1], task.dt)
-            xs.append(x)
-            vs.append(v)
-    return torch.stack(xs, 1), torch.stack(vs, 1)
+        xs, vs, _ = bare.rollout(State(x0, v0), task.params, task.dt, frames)
+    return xs, vs
 
 
 def five_step(x_hat, v_hat, x, v) -> tuple[float, float | None, int]:
