@@ -434,6 +434,8 @@ def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data
     assert 0 < float(state["first_train.dx"].abs().max()) <= 0.005 * 3
     assert float(state["first_val.dx"].abs().max()) > 0
     assert "early_stop" not in learned and learned["epochs_trained"] == 3
+    # (and keeps its last epoch as its best checkpoint, whatever its validation loss)
+    assert sorted(p.name for p in (tmp_path / "first" / "checkpoints").glob("best-*")) == ["best-epoch=2.ckpt"]
     clean_args = json.loads((tmp_path / "clean" / "config.json").read_text())["args"]
     assert clean_args["first_state_chunks"] == clean_args["first_state_val_chunks"] == 0
     with pytest.raises(ConfigError, match=r"devices × num_nodes = 2: a run that learns its chunks' first states"):

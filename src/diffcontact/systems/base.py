@@ -42,9 +42,13 @@ class Stepping:
 class NoiseCoordinates(Protocol):
     """Coordinates of a System in which observation noise is drawn i.i.d. (``data/noise.py``), e.g. the chain
     pendulum's link angles: ``name`` (recorded in the dataset), ``from_cartesian(x, v) -> (q, w)`` and
-    ``to_cartesian(q, w) -> (x, v)`` (x, v: (B, P, d); q, w: (B, k)), inverse maps on the constraint manifold."""
+    ``to_cartesian(q, w) -> (x, v)`` (x, v: (B, P, d); q, w: (B, k)), inverse maps on the constraint manifold;
+    ``size``: k."""
 
     name: ClassVar[str]
+
+    @property
+    def size(self) -> int: ...
 
     def from_cartesian(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
 

@@ -108,6 +108,11 @@ class ChainAngles:
     lengths: torch.Tensor
     name: ClassVar[str] = "chain"
 
+    @property
+    def size(self) -> int:
+        """The number of links (of angles, and of rates)."""
+        return int(self.lengths.shape[0])
+
     def from_cartesian(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """q, w (B, n) of node positions and velocities x, v (B, n, 2) on the chain."""
         prev_x = torch.cat([self.pivot.to(x).expand(x.shape[0], 1, 2), x[:, :-1]], 1)

@@ -125,9 +125,10 @@ class ContactLightningModule(pl.LightningModule):
         self.learns_contacts = self.learned is not None and self.learned.n_slots > 0  # (μ and e)
         self.first_states: dict[str, FirstStates] = {}
         if c.first_state_chunks:  # (the chunks' first states, learned: see the module docstring)
-            d, dtype = self.task.system.d, getattr(torch, c.dtype)
-            self.first_train = FirstStates(c.first_state_chunks, n_points, d, dtype)
-            self.first_val = FirstStates(c.first_state_val_chunks, n_points, d, dtype)
+            dtype, coords = getattr(torch, c.dtype), self.task.system.noise_coordinates
+            shape = (n_points, self.task.system.d) if coords is None else (coords.size,)
+            self.first_train = FirstStates(c.first_state_chunks, shape, dtype, coords)
+            self.first_val = FirstStates(c.first_state_val_chunks, shape, dtype, coords)
             self.first_states = {"train": self.first_train, "val": self.first_val}
 
     @classmethod
@@ -196,22 +197,27 @@ class ContactLightningModule(pl.LightningModule):
         baseline's one-step pair (x0, v0, x1, v1, ...) is the chunk of its two frames.  ``kind`` None: the run's
         ``train_loss``, in training and in validation (val/loss chooses the checkpoint by the objective the run
         minimises: an MSE run chosen by its L1 kept a worse model, docs/baselines.md).  ``first``: corrections dx,
-        dv (B, P, d) of the chunks' first frames (learned first states), or None."""
+        dv of the chunks' first frames (learned first states: ``FirstStates.start``), or None."""
+        return self._losses(batch, kind, first)[0]
+
+    def _losses(self, batch, kind: str | None, first: tuple | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``loss`` and each chunk's share of it (B,) without the pull of μ (their mean is the data term)."""
         kind = kind or self.config.train_loss
         x, v = batch[0], batch[1]
         if self.baseline:
             x, v = torch.stack([batch[0], batch[2]], 1), torch.stack([batch[1], batch[3]], 1)
-        x0, v0 = (x[:, 0], v[:, 0]) if first is None else (x[:, 0] + first[0], v[:, 0] + first[1])
+        x0, v0 = (x[:, 0], v[:, 0]) if first is None else self.first_train.start(x[:, 0], v[:, 0], *first)
         px, pv = self.net(x0, v0, x.shape[1])
         err = (lambda r: r.abs()) if kind == "l1" else torch.square
         w = self.config.velocity_weight
         scale = self._point_scale.to(x)[:, None]  # (P, 1): 1 at each body's centre, axis_scale at its axis points
-        loss = (err(scale * (px - x)).mean() + w * err(scale * (pv - v)).mean()) / (1.0 + w)
+        chunks = (err(scale * (px - x)).flatten(1).mean(1) + w * err(scale * (pv - v)).flatten(1).mean(1)) / (1.0 + w)
+        loss = chunks.mean()
         if self.training and self.config.mu_l1 and self.learns_contacts:
             # a constant pull of every μ toward 0: where all of a slot's contacts stick the data give μ no gradient
             # (a plateau above the truth), and Adam moves μ down at its full rate until they slide again
             loss = loss + self.config.mu_l1 * self._params.mu.sum()
-        return loss
+        return loss, chunks
 
     def as_fitted(self, split: str, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The chunks x, v (N, L, P, d) of ``split`` ("train" or "val"), all of them in order, as the model is fitted
@@ -224,9 +230,10 @@ class ContactLightningModule(pl.LightningModule):
         states = self.first_states.get(split)
         return None if states is None or len(batch) != 5 else states.take(batch[4])
 
-    def _move_first(self, batch, split: str, first, grads) -> None:
-        """One step of the first states ``first`` of a chunk batch of ``split`` along ``grads``, at the schedule's
-        share of ``first_state_lr``; none, with a warning, where a gradient is not finite."""
+    def _move_first(self, batch, split: str, first, grads, chunks: torch.Tensor) -> None:
+        """One step of the first states ``first`` of a chunk batch of ``split``, whose losses are ``chunks`` (B,),
+        along ``grads``, at the schedule's share of ``first_state_lr``; none, with a warning, where a gradient is not
+        finite."""
         if first is None:
             return
         if any(g is None or not bool(torch.isfinite(g).all()) for g in grads):
@@ -234,28 +241,37 @@ class ContactLightningModule(pl.LightningModule):
                         self.current_epoch, split)  # fmt: skip
             return
         share = self._optimizer().param_groups[0]["lr"] / self.config.lr  # (the schedule's decay so far)
-        self.first_states[split].update(batch[4], grads[0], grads[1], self.config.first_state_lr * share)
+
+        def loss_at(dx: torch.Tensor, dv: torch.Tensor) -> torch.Tensor:  # (the chunks' losses, this model)
+            try:
+                return self._losses(batch, None, (dx, dv))[1]
+            except FloatingPointError:  # (a trial state the model cannot step: not taken)
+                return torch.full_like(chunks, float("inf"))
+
+        with torch.no_grad():
+            lr = self.config.first_state_lr * share
+            self.first_states[split].update(batch[4], grads[0], grads[1], lr, chunks, loss_at)
 
     def training_step(self, batch, batch_idx: int):
         opt = self._optimizer()
         first = self._first(batch, "train")
         try:
-            loss = self.loss(batch) if first is None else self.loss(batch, first=first)
+            loss, chunks = (self.loss(batch), None) if first is None else self._losses(batch, None, first)
             failed = None
         except FloatingPointError as err:  # (a non-finite state in the forward pass: this step is skipped)
             self.forward_failures += 1
-            failed = err
+            failed, chunks = err, None
             # (NaN gradients: skipped everywhere; a Tensor, the net having parameters)
             loss = cast(torch.Tensor, float("nan") * sum(p.sum() for p in self.net.parameters()))
         opt.zero_grad()
         self.manual_backward(loss)
         grads = [p.grad for p in self.net.parameters() if p.grad is not None]
         if all(bool(torch.isfinite(g).all()) for g in grads) and bool(torch.isfinite(loss)):
+            if first is not None:  # (before the model's step: a trial is scored under the model of the gradients)
+                self._move_first(batch, "train", first, [t.grad for t in first], cast(torch.Tensor, chunks))
             opt.step()
             if self.learns_contacts:
                 self._params.project_()
-            if first is not None:
-                self._move_first(batch, "train", first, [t.grad for t in first])
         else:  # skipped entirely: no update, no weight decay
             self.skipped_steps += 1
             opt.zero_grad()
@@ -274,9 +290,9 @@ class ContactLightningModule(pl.LightningModule):
                 loss = self.loss(batch)
             else:  # (its first states move one step along their own gradient; the model is fixed)
                 with torch.enable_grad():
-                    loss = self.loss(batch, first=first)
+                    loss, chunks = self._losses(batch, None, first)
                     grads = torch.autograd.grad(loss, first, allow_unused=True)
-                self._move_first(batch, "val", first, grads)
+                self._move_first(batch, "val", first, grads, chunks)
                 loss = loss.detach()
         except FloatingPointError as err:  # (a diverging model: the worst loss, not a crash)
             self.forward_failures += 1
