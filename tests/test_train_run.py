@@ -19,7 +19,7 @@ from diffcontact.models import build_model
 from diffcontact.solver import Status
 from diffcontact.train.config import TrainConfig, resolve_preset, task_training
 from diffcontact.train.module import KEEP_FAILED, ContactLightningModule
-from diffcontact.train.run import planned_epochs, train_run
+from diffcontact.train.run import keeps_last_epoch, planned_epochs, train_run
 from diffcontact.train.summary import learned_summary, slot_contacts
 
 
@@ -434,8 +434,11 @@ def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data
     assert 0 < float(state["first_train.dx"].abs().max()) <= 0.005 * 3
     assert float(state["first_val.dx"].abs().max()) > 0
     assert "early_stop" not in learned and learned["epochs_trained"] == 3
-    # (and keeps its last epoch as its best checkpoint, whatever its validation loss)
-    assert sorted(p.name for p in (tmp_path / "first" / "checkpoints").glob("best-*")) == ["best-epoch=2.ckpt"]
+    # (on free points the validation loss chooses its checkpoint; in a System's noise coordinates, its last epoch)
+    system, chain = dc.build_task("BP1").system, dc.build_task("CP1-wall").system
+    assert not keeps_last_epoch(TrainConfig(task="BP1", first_state_chunks=16), system)
+    assert keeps_last_epoch(TrainConfig(task="CP1-wall", first_state_chunks=16), chain)
+    assert not keeps_last_epoch(TrainConfig(task="CP1-wall"), chain)
     clean_args = json.loads((tmp_path / "clean" / "config.json").read_text())["args"]
     assert clean_args["first_state_chunks"] == clean_args["first_state_val_chunks"] == 0
     with pytest.raises(ConfigError, match=r"devices × num_nodes = 2: a run that learns its chunks' first states"):

@@ -5,7 +5,7 @@ run, which holds the folder's lock, ``lock.output_lock``, while it writes):
 - ``config.json``: ``{"args": {"task", "model", ... every setting}, "versions", "parallel"}`` (the settings,
   the versions and how the processes share the work), written first;
 - ``checkpoints/``: ``last.ckpt`` (resume; written atomically at the end of every epoch) and ``best-epoch=E.ckpt``
-  (chosen on the validation loss; the last epoch's in a run that learns its chunks' first states),
+  (chosen on the validation loss; the last epoch's where a run learns its first states in noise coordinates),
   ``refined-best-epoch=E.ckpt`` where refining μ and e kept a change;
 - ``coef_start.json``: the scan of μ and e's start, where the run used one;
 - ``solver_failures.npz``: the first contact problems the solver failed on, if any;

@@ -167,11 +167,19 @@ class _ShuffleState(pl.Callback):
 # where the stop ended the run at 95 with the checkpoint of epoch 64 (e 0.898 against 0.936, 5-step error 0.101
 # against 0.059).
 NOISY_PATIENCE = 30
-# A run that learns its chunks' first states keeps its last epoch as its best checkpoint: there the validation loss
-# (least over the validation chunks' first states) was least early, while μ and e went on to the truth, on the chain
-# pendulum at noise 0.05 (CP3: the checkpoint of epoch 31 had μ 0.445, e 0.034 and a 5-step error of 0.072; the
-# last μ 0.476, e 0.000 and 0.046; CP3-e e 0.988 and 0.992, 0.036 and 0.039; BP5-e e 0.933 and 0.930, 0.061 and
-# 0.064; docs/training.md, "Noisy data").
+# A run that learns its chunks' first states in a System's noise coordinates (the chain pendulum) keeps its last
+# epoch as its best checkpoint: there the validation loss (least over the validation chunks' first states) was least
+# early, while μ and e went on to the truth (noise 0.05, CP3: the checkpoint of epoch 31 had μ 0.445, e 0.034 and a
+# 5-step error of 0.072, the last μ 0.476, e 0.000 and 0.046; CP3-e e 0.988 and 0.992, 0.036 and 0.039).  On free
+# points the validation loss chooses (the Rope at noise 0.01: 0.155 at epoch 216, 0.667 at the last; BP5-e at 0.05
+# 0.061 and 0.064; docs/training.md, "Noisy data").
+
+
+def keeps_last_epoch(config: TrainConfig, system) -> bool:
+    """Whether a run of ``config`` on ``system`` keeps its last epoch as its best checkpoint (see above)."""
+    return bool(config.first_state_chunks) and system.noise_coordinates is not None
+
+
 # On such data the first state of every training chunk is learned with the model (a contact model, the noise in
 # coordinates a first state can be corrected in: ``first_state_settings``), at this fraction of the recorded noise
 # a step.
@@ -277,7 +285,8 @@ def train_run(
         module = ContactLightningModule(config, built_task=build_task(parsed))
         start = run.last_checkpoint if resume and run.last_checkpoint.is_file() else None
         patience = stop_patience(data.folder, config)
-        trainer, checkpoints = _trainer(run, config, max_epochs, start, progress, accelerator, first, patience)
+        last = keeps_last_epoch(config, module.task.system)
+        trainer, checkpoints = _trainer(run, config, max_epochs, start, progress, accelerator, first, patience, last)
         if start is None and config.coef_start == "scan" and config.model in MODEL_NAMES:
             _scan_start(module, data, config, run, first)
         trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
@@ -481,6 +490,7 @@ def _trainer(
     accelerator: str,
     first: bool,
     patience: int | None = None,
+    keep_last: bool = False,
 ) -> tuple[pl.Trainer, _RunCheckpoint]:
     """The run's Lightning trainer (logs, atomic checkpoints every epoch, the best on val/loss, a stop after
     ``patience`` validations without a better val/loss if given) and its checkpoint callback.
@@ -491,8 +501,7 @@ def _trainer(
     scaled with it (all three are logged and recorded in config.json: ``_record``).  Only the first process
     (``first``) writes the files.  docs/scaling.md."""
     loggers = [CSVLogger(run.logs, name=run.csv_logs.name), TensorBoardLogger(run.logs, name=run.tb_logs.name)]
-    # (a run that learns its chunks' first states keeps its last epoch as its best: see NOISY_PATIENCE)
-    monitor, mode = ("epoch", "max") if config.first_state_chunks else ("val/loss", "min")
+    monitor, mode = ("epoch", "max") if keep_last else ("val/loss", "min")  # (``keeps_last_epoch``)
     checkpoints = _RunCheckpoint(
         dirpath=run.checkpoints,
         filename=BEST_CHECKPOINT,
