@@ -4,7 +4,8 @@
 
 Where a run's checkpoint was chosen on its validation loss, this says what the last epoch would have given instead
 (docs/training.md, "Noisy data": the runs that learn their chunks' first states now keep their last epoch).
-Float64 rollouts of every test trajectory's first frames; the error with its 95 % interval over the trajectories.
+Float64 rollouts of every test trajectory's first frames; the error
+with its 95 % interval over the trajectories (as `diffcontact evaluate` gives it).
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ import torch
 
 from diffcontact.data.store import dataset_folder
 from diffcontact.eval.loading import load_run
-from diffcontact.eval.metrics import relative_error, trajectory_error
-from diffcontact.eval.rollouts import ground_truth, predict
+from diffcontact.eval.metrics import mean_interval, relative_error, trajectory_error
+from diffcontact.eval.rollouts import rollout_split
 from diffcontact.run_dir import RunDir
 
 
@@ -37,14 +38,12 @@ def main() -> None:
             loaded = load_run(path, checkpoint=checkpoint)
             net = loaded.net.double()
             root = args.data or loaded.config["args"].get("data_root", "data")
-            x, v, _, _ = ground_truth(dataset_folder(root, loaded.task_name), "test", 5, loaded.task.config)
             with torch.no_grad():
-                xh, vh = predict(net, x[:, 0], v[:, 0], 5)
-            err = trajectory_error(relative_error(xh, vh, x, v), 5)
-            half = 1.96 * float(err.std()) / len(err) ** 0.5
+                ro = rollout_split(net, dataset_folder(root, loaded.task_name), "test", 5, loaded.task.config)
+            mean, half = mean_interval(trajectory_error(relative_error(ro.x_hat, ro.v_hat, ro.x, ro.v), 5))
             mu, e = (float(t.detach().mean()) for t in (net.params.mu, net.params.e))
             print(
-                f"{path} {name} ({checkpoint.name}): 5-step error {float(err.mean()):.4g} ± {half:.2g}, "
+                f"{path} {name} ({checkpoint.name}): 5-step error {mean:.4g} ± {half:.2g}, "
                 f"μ {mu:.4f}, e {e:.4f} (means over the slots)"
             )
 

@@ -26,6 +26,7 @@ from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
 from diffcontact.run_dir import BEST_CHECKPOINT, REFINED_PREFIX, RunDir
 from diffcontact.solver.contact_solver import load_failed, save_failed
+from diffcontact.systems.base import System
 from diffcontact.systems.registry import build_task
 from diffcontact.train.coef_start import scan_coefficients
 from diffcontact.train.config import TrainConfig, check_given
@@ -175,7 +176,7 @@ NOISY_PATIENCE = 30
 # 0.061 and 0.064; docs/training.md, "Noisy data").
 
 
-def keeps_last_epoch(config: TrainConfig, system) -> bool:
+def keeps_last_epoch(config: TrainConfig, system: System) -> bool:
     """Whether a run of ``config`` on ``system`` keeps its last epoch as its best checkpoint (see above)."""
     return bool(config.first_state_chunks) and system.noise_coordinates is not None
 
