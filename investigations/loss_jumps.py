@@ -13,6 +13,9 @@ side on the training chunks:
 3. along the straight line between the two (parameters and corrections, ``--points`` points), the largest change of
    a chunk's loss between neighbouring points, for the chunks that rose most and those that fell most: a jump is one
    step of the size of the whole change, a smooth change is spread over the line.
+With ``--e E ...`` it answers another question instead: where the training loss of the last checkpoint, least over
+its first states (fitted again ``--refit`` trial steps at each value), is least in e (docs/training.md, "Noisy data":
+μ and e at the full rate).
 float32, as trained; one thread.
 """
 
@@ -74,17 +77,35 @@ def split(losses: torch.Tensor, collision: torch.Tensor) -> str:
     return f"all {losses.mean():.5f}, with a collision {hit:.5f}, free {free:.5f}"
 
 
+def scan_e(run: RunDir, data: str, values: list[float], steps: int) -> None:
+    """The training loss of the run's last checkpoint at each e of ``values``, its corrections fitted again."""
+    module = ContactLightningModule.from_checkpoint(run.last_checkpoint)
+    module.train()
+    chunks = ContactDataModule(module.config.task, data, dtype=getattr(torch, module.config.dtype))._dataset("train")
+    collision = chunks.collision.bool()
+    for e in values:
+        with torch.no_grad():
+            module._params.e_raw.fill_(e)
+        states = refit(module, chunks, steps)
+        print(f"e {e}: {split(chunk_losses(module, chunks, states.dx, states.dv), collision)}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run")
     parser.add_argument("--data", required=True, help="the dataset root the run was trained on")
-    parser.add_argument("--early", required=True, help="the earlier checkpoint (relative to the run, or absolute)")
+    parser.add_argument("--early", help="the earlier checkpoint (relative to the run, or absolute)")
+    parser.add_argument("--e", nargs="+", type=float, help="instead: the last checkpoint's loss at each of these e")
     parser.add_argument("--refit", type=int, default=12, help="trial steps of the corrections before scoring")
     parser.add_argument("--points", type=int, default=41, help="points on the line between the two checkpoints")
     parser.add_argument("--top", type=int, default=8, help="chunks shown that rose most (and half as many that fell)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     run = RunDir(Path(args.run))
+    if args.e:
+        return scan_e(run, args.data, args.e, args.refit)
+    if not args.early:
+        raise SystemExit("give --early CHECKPOINT (or --e VALUES)")
     early_path = Path(args.early) if Path(args.early).is_absolute() else run.path / args.early
     early = ContactLightningModule.from_checkpoint(early_path)
     last = ContactLightningModule.from_checkpoint(run.last_checkpoint)

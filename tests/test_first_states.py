@@ -15,7 +15,7 @@ from diffcontact.state import State
 from diffcontact.systems.registry import build_task
 from diffcontact.train.config import TrainConfig
 from diffcontact.train.first_states import GROW, MIN_SCALE, SHRINK, FirstStates
-from diffcontact.train.run import _data, first_state_settings
+from diffcontact.train.run import NOISY_COEF_LR, _data, first_state_settings
 
 
 def test_a_step_moves_only_the_chunks_of_the_batch_and_only_where_it_lowers_the_chunk_loss():
@@ -126,3 +126,6 @@ def test_first_states_are_learned_where_the_noise_is_iid_in_known_coordinates(ta
     config = TrainConfig(task=task_name, data_root=str(tmp_path))
     settings = first_state_settings(config, _data(config))
     assert (settings["first_state_chunks"] > 0) == learned and (settings["first_state_lr"] > 0) == learned
+    # (with μ and e at the full rate, unless the command or the task file gives their rate)
+    assert settings.get("coef_lr") == (NOISY_COEF_LR if learned else None)
+    assert "coef_lr" not in first_state_settings(config, _data(config), coef_given=True)

@@ -429,6 +429,9 @@ def test_a_run_on_noisy_data_stops_when_its_validation_loss_stops_improving(data
     args = json.loads((tmp_path / "first" / "config.json").read_text())["args"]
     assert (args["first_state_chunks"], args["first_state_val_chunks"]) == (16, 4)
     assert args["first_state_lr"] == pytest.approx(0.005)
+    assert args["coef_lr"] == run_module.NOISY_COEF_LR  # (μ and e at the full rate on such a run ...)
+    train_run("BP1", epochs=1, out=tmp_path / "given", data_root=noisy, batch_size=8, progress=False, coef_lr=0.5)
+    assert json.loads((tmp_path / "given" / "config.json").read_text())["args"]["coef_lr"] == 0.5  # (... unless given)
     state = torch.load(tmp_path / "first" / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
     assert state["first_train.steps"].tolist() == [3] * 16  # (each chunk moved once an epoch, in its batch)
     assert 0 < float(state["first_train.dx"].abs().max()) <= 0.005 * 3

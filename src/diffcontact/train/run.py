@@ -29,7 +29,7 @@ from diffcontact.solver.contact_solver import load_failed, save_failed
 from diffcontact.systems.base import System
 from diffcontact.systems.registry import build_task
 from diffcontact.train.coef_start import scan_coefficients
-from diffcontact.train.config import TrainConfig, check_given
+from diffcontact.train.config import TrainConfig, check_given, task_training
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.identify import refine
 from diffcontact.train.module import KEEP_FAILED, ContactLightningModule, quiet_lightning, saved_config
@@ -185,6 +185,13 @@ def keeps_last_epoch(config: TrainConfig, system: System) -> bool:
 # coordinates a first state can be corrected in: ``first_state_settings``), at this fraction of the recorded noise
 # a step.
 FIRST_STATE_LR = 0.1
+# ... and μ and e at the full learning rate (``coef_lr`` = 1; the default preset's 1/6 elsewhere), unless the command
+# or the task file gives ``coef_lr``: on noisy chunks the gradient of e is small beside its noise from batch to batch,
+# so Adam moves e about coef_lr × lr × (its mean over its spread) a step, and at 1/6 e crept toward the truth for the
+# whole run and stopped short of it, where the loss, least over the first states, was still lower at the truth.  At
+# noise 0.05 (seed 0; 1/6 against 1): CP3-e e 0.992 and 0.995, CP3 μ 0.476 and 0.489 (5-step errors 0.046 and
+# 0.039), BP5-e e 0.933 and 0.934 (docs/training.md, "Noisy data").
+NOISY_COEF_LR = 1.0
 ACCELERATORS = ("cpu",)  # (the physics path keeps its constant tensors on the CPU: docs/scaling.md, GPUs)
 
 
@@ -278,7 +285,8 @@ def train_run(
         config, done = _settings(run, parsed, model, settings, resume)
         data = _data(config, parsed)
         if not done:  # (a new run: its first states learned or not, from what the dataset records)
-            config = config.replace(**first_state_settings(config, data))
+            coef_given = settings.get("coef_lr") is not None or "coef_lr" in task_training(parsed)
+            config = config.replace(**first_state_settings(config, data, coef_given))
         max_epochs = _planned(config, data, done)
         _record(run, config, accelerator, first)
         started = time.perf_counter()
@@ -466,20 +474,22 @@ def recorded_noise(folder: str | Path) -> float:
     return float(load_meta(folder)["request"].get("noise") or 0.0)
 
 
-def first_state_settings(config: TrainConfig, data: ContactDataModule) -> dict:
+def first_state_settings(config: TrainConfig, data: ContactDataModule, coef_given: bool = False) -> dict:
     """``first_state_chunks`` and ``first_state_lr`` of a run of ``config`` on ``data``: every training chunk's
     first state learned, at ``FIRST_STATE_LR`` × the noise a step, where the dataset records observation noise, the
     model is a contact model and the noise is i.i.d. in coordinates the first states can be corrected in (the free
     points' Cartesian ones: balls, the rope; a System's ``noise_coordinates``: the chain pendulum's link angles);
     none otherwise (noise projected onto the constraints: the disks, the gyroscope; docs/training.md, "Noisy
-    data")."""
+    data").  Such a run also learns μ and e at ``NOISY_COEF_LR`` (``coef_lr``) unless ``coef_given`` (the command
+    or the task file gives it)."""
     noise = recorded_noise(data.folder)
     projected = noise_kind(build_task(data.config).system) == "projected"  # (the task as parsed by ``data``)
     if not noise * FIRST_STATE_LR or config.model not in MODEL_NAMES or projected:
         return {"first_state_chunks": 0, "first_state_val_chunks": 0, "first_state_lr": 0.0}
     data.setup()
     train, val = (len(data.splits[name].chunk_x) for name in ("train", "val"))
-    return {"first_state_chunks": train, "first_state_val_chunks": val, "first_state_lr": FIRST_STATE_LR * noise}
+    settings = {"first_state_chunks": train, "first_state_val_chunks": val, "first_state_lr": FIRST_STATE_LR * noise}
+    return settings if coef_given else settings | {"coef_lr": NOISY_COEF_LR}
 
 
 def _trainer(
