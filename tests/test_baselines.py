@@ -151,6 +151,35 @@ def test_in_cp_sp_treats_identical_balls_alike():
     assert not torch.allclose(v1[:, 0], v1[:, 1])  # (not trivially equal)
 
 
+@pytest.mark.parametrize("name", ["Rope", "BP5"])
+def test_an_interaction_network_sums_the_effects_of_every_listed_relation(name):
+    """The network runs φ_R once per distinct relation (the Rope lists each limit twice, once per side, with equal
+    inputs; BP5 lists none twice); its output equals φ_R applied to every relation the graph lists, summed per
+    receiver, in float64."""
+    task = dc.build_task(name)
+    net = build_model(task, "IN-CP-SP", seed=1).net
+    listed, distinct = net.recv.shape[0], net.recv_distinct.shape[0]
+    assert (listed, distinct) == {"Rope": (74, 37), "BP5": (40, 40)}[name]
+    s = task.sample(3, seed=2)
+    inv = torch.rand(task.system.n_points, dtype=torch.float64) + 0.5
+    force = torch.randn_like(s.x)
+    B, S, P, d = 3, net.static.shape[0], net.P, net.d
+    obj = torch.cat([torch.cat([s.x, net.static.expand(B, S, d)], 1), torch.cat([s.v, s.v.new_zeros(B, S, d)], 1)], -1)
+    attr = torch.stack([torch.cat([inv, inv.new_zeros(S)]), net.radius], -1)
+    rel = torch.cat(
+        [
+            torch.einsum("ro,bof->brf", net.recv - net.send, obj),
+            (net.recv @ attr).expand(B, -1, -1),
+            (net.send @ attr).expand(B, -1, -1),
+            net.rel_attr.expand(B, -1, -1),
+        ],
+        -1,
+    )
+    effects = torch.einsum("ro,bre->boe", net.recv[:, :P], net.relational(rel))
+    expected = net.object(torch.cat([obj[:, :P], attr[:P].expand(B, -1, -1), force, effects], -1))
+    assert torch.allclose(net(s.x, s.v, inv, force), expected, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize("model", ["IN-CP-SP", "IN-CP-CLNN"])
 def test_gradcheck_of_one_interaction_network_step(model):
     """float64: one step's derivatives w.r.t. the state and a bias of each network against finite differences."""

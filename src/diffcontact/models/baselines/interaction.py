@@ -10,6 +10,9 @@ code passed +∇V).
 One step, batched over samples and relations (static object weights, no loop):
     relation input   [o_recv − o_send (2d), a_recv (2), a_send (2), relation attributes (D_R)]
     effects          φ_R (hidden ReLU layers) -> effect size, summed per receiver
+A relation that the graph lists more than once (the rope's two sides of a limit share their slot, so their inputs
+are the same) goes through φ_R once and its effect counts as often as it is listed: the same sums, with half of φ_R's
+work on the ropes.
     object input     [x, v (2d), attributes (2), external force (d), summed effect]
     output           φ_O (one hidden ReLU layer) -> d per point
 """
@@ -42,6 +45,10 @@ class InteractionNetwork(nn.Module):
     static: torch.Tensor
     radius: torch.Tensor
     rel_attr: torch.Tensor
+    recv_distinct: torch.Tensor
+    send_distinct: torch.Tensor
+    rel_attr_distinct: torch.Tensor
+    effect_weights: torch.Tensor
 
     def __init__(self, graph: RelationGraph, rel_attr: torch.Tensor, d: int, sizes: tuple, generator):
         super().__init__()
@@ -52,6 +59,12 @@ class InteractionNetwork(nn.Module):
         self.register_buffer("static", graph.static.clone())
         self.register_buffer("radius", graph.radius.clone())
         self.register_buffer("rel_attr", rel_attr.clone())
+        # (derived from the buffers above, not saved: the distinct relations and each one's summed receiver weights)
+        distinct, counted = _distinct_relations(torch.cat([graph.recv, graph.send, rel_attr.to(graph.recv)], 1))
+        self.register_buffer("recv_distinct", graph.recv[distinct].clone(), persistent=False)
+        self.register_buffer("send_distinct", graph.send[distinct].clone(), persistent=False)
+        self.register_buffer("rel_attr_distinct", rel_attr[distinct].clone(), persistent=False)
+        self.register_buffer("effect_weights", (counted @ graph.recv[:, : self.P]).clone(), persistent=False)
         n_rel_in = 2 * d + 2 * N_OBJECT_ATTRIBUTES + rel_attr.shape[-1]
         n_obj_in = 2 * d + N_OBJECT_ATTRIBUTES + d + effect
         self.relational = mlp([n_rel_in] + [rel_hidden] * rel_layers + [effect], generator).to(torch.float64)
@@ -74,16 +87,27 @@ class InteractionNetwork(nn.Module):
         attr = torch.stack([inv, self.radius], -1)  # (N_O, 2)
         rel = torch.cat(
             [
-                torch.einsum("ro,bof->brf", self.recv - self.send, obj),
-                (self.recv @ attr).expand(B, -1, -1),
-                (self.send @ attr).expand(B, -1, -1),
-                self.rel_attr.expand(B, -1, -1),
+                torch.einsum("ro,bof->brf", self.recv_distinct - self.send_distinct, obj),
+                (self.recv_distinct @ attr).expand(B, -1, -1),
+                (self.send_distinct @ attr).expand(B, -1, -1),
+                self.rel_attr_distinct.expand(B, -1, -1),
             ],
             -1,
         )
-        effects = torch.einsum("ro,bre->boe", self.recv[:, : self.P], self.relational(rel))  # (B, P, effect)
+        effects = torch.einsum("ro,bre->boe", self.effect_weights, self.relational(rel))  # (B, P, effect)
         inp = torch.cat([obj[:, : self.P], attr[: self.P].expand(B, -1, -1), force, effects], -1)
         return self.object(inp)
+
+
+def _distinct_relations(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first of each set of equal ``rows`` (N_R, D), in the order of the rows, (N_U,); and (N_U, N_R), 1 where
+    relation r is a copy of distinct relation u."""
+    _, inverse = torch.unique(rows, dim=0, return_inverse=True)
+    first = torch.full((int(inverse.max()) + 1,), rows.shape[0], dtype=torch.long)
+    first = first.scatter_reduce(0, inverse, torch.arange(rows.shape[0]), "amin")
+    order = torch.argsort(first)  # (distinct relations in the order the graph lists them first)
+    counted = (inverse[None, :] == order[:, None]).to(rows)
+    return first[order], counted
 
 
 class InteractionNetSP(Baseline):
