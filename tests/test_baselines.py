@@ -158,25 +158,15 @@ def test_an_interaction_network_sums_the_effects_of_every_listed_relation(name):
     receiver, in float64."""
     task = dc.build_task(name)
     net = build_model(task, "IN-CP-SP", seed=1).net
-    listed, distinct = net.recv.shape[0], net.recv_distinct.shape[0]
-    assert (listed, distinct) == {"Rope": (74, 37), "BP5": (40, 40)}[name]
+    assert (net.recv.shape[0], net.recv_distinct.shape[0]) == {"Rope": (74, 37), "BP5": (40, 40)}[name]
     s = task.sample(3, seed=2)
     inv = torch.rand(task.system.n_points, dtype=torch.float64) + 0.5
     force = torch.randn_like(s.x)
-    B, S, P, d = 3, net.static.shape[0], net.P, net.d
-    obj = torch.cat([torch.cat([s.x, net.static.expand(B, S, d)], 1), torch.cat([s.v, s.v.new_zeros(B, S, d)], 1)], -1)
-    attr = torch.stack([torch.cat([inv, inv.new_zeros(S)]), net.radius], -1)
-    rel = torch.cat(
-        [
-            torch.einsum("ro,bof->brf", net.recv - net.send, obj),
-            (net.recv @ attr).expand(B, -1, -1),
-            (net.send @ attr).expand(B, -1, -1),
-            net.rel_attr.expand(B, -1, -1),
-        ],
-        -1,
-    )
-    effects = torch.einsum("ro,bre->boe", net.recv[:, :P], net.relational(rel))
-    expected = net.object(torch.cat([obj[:, :P], attr[:P].expand(B, -1, -1), force, effects], -1))
+    obj, attr = net.objects(s.x, s.v, inv)
+    listed = net.effects(obj, attr, net.recv, net.send, net.rel_attr, net.recv[:, : net.P])  # (every listed one)
+    distinct = net.effects(obj, attr, net.recv_distinct, net.send_distinct, net.rel_attr_distinct, net.effect_weights)
+    assert torch.allclose(distinct, listed, rtol=1e-12, atol=1e-12) and listed.abs().max() > 0.1
+    expected = net.object(torch.cat([obj[:, : net.P], attr[: net.P].expand(3, -1, -1), force, listed], -1))
     assert torch.allclose(net(s.x, s.v, inv, force), expected, rtol=1e-12, atol=1e-12)
 
 

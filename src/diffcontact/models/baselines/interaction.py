@@ -78,25 +78,37 @@ class InteractionNetwork(nn.Module):
 
     def forward(self, x: torch.Tensor, v: torch.Tensor, inv_inertia: torch.Tensor, force: torch.Tensor) -> torch.Tensor:
         """Per-point output (B, P, d) from x, v (B, P, d), inverse inertia (P,) and external force (B, P, d)."""
-        B = x.shape[0]
-        S = self.static.shape[0]
+        obj, attr = self.objects(x, v, inv_inertia)
+        effects = self.effects(
+            obj, attr, self.recv_distinct, self.send_distinct, self.rel_attr_distinct, self.effect_weights
+        )
+        inp = torch.cat([obj[:, : self.P], attr[: self.P].expand(x.shape[0], -1, -1), force, effects], -1)
+        return self.object(inp)
+
+    def objects(self, x: torch.Tensor, v: torch.Tensor, inv_inertia: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every object's state (B, N_O, 2d), the static ones at rest, and attributes (N_O, 2): inverse inertia
+        (0 for static objects) and contact radius."""
+        B, S = x.shape[0], self.static.shape[0]
         obj = torch.cat(
             [torch.cat([x, self.static.expand(B, S, self.d)], 1), torch.cat([v, v.new_zeros(B, S, self.d)], 1)], -1
-        )  # (B, N_O, 2d)
-        inv = torch.cat([inv_inertia.to(x), x.new_zeros(S)])
-        attr = torch.stack([inv, self.radius], -1)  # (N_O, 2)
+        )
+        attr = torch.stack([torch.cat([inv_inertia.to(x), x.new_zeros(S)]), self.radius], -1)
+        return obj, attr
+
+    def effects(self, obj, attr, recv, send, rel_attr, weights) -> torch.Tensor:
+        """φ_R of relations with receiver and sender weights ``recv``, ``send`` (R, N_O) and attributes
+        ``rel_attr`` (R, D_R), summed into each point with ``weights`` (R, P): (B, P, effect)."""
+        B = obj.shape[0]
         rel = torch.cat(
             [
-                torch.einsum("ro,bof->brf", self.recv_distinct - self.send_distinct, obj),
-                (self.recv_distinct @ attr).expand(B, -1, -1),
-                (self.send_distinct @ attr).expand(B, -1, -1),
-                self.rel_attr_distinct.expand(B, -1, -1),
+                torch.einsum("ro,bof->brf", recv - send, obj),
+                (recv @ attr).expand(B, -1, -1),
+                (send @ attr).expand(B, -1, -1),
+                rel_attr.expand(B, -1, -1),
             ],
             -1,
         )
-        effects = torch.einsum("ro,bre->boe", self.effect_weights, self.relational(rel))  # (B, P, effect)
-        inp = torch.cat([obj[:, : self.P], attr[: self.P].expand(B, -1, -1), force, effects], -1)
-        return self.object(inp)
+        return torch.einsum("ro,bre->boe", weights, self.relational(rel))
 
 
 def _distinct_relations(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
