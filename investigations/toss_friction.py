@@ -11,7 +11,9 @@ free-flight fit as ``evaluate`` starts them):
 - **the first impact**: the change of the centre's velocity across the toss's first contact (two-frame differences
   at 3 frames before and 3 after, gravity's part removed): |Δv_tangential| / Δv_normal is the ratio of the tangential
   to the normal impulse, at most μ, and equal to μ where the corner slides through the whole impact; and |Δω|, the
-  change of the angular velocity (world frame, from the rotations of the frames around) across the same frames.
+  change of the angular velocity (world frame, from the rotations of the frames around) across the same frames;
+  and the slip of the corner lowest at the impact: how much of its horizontal velocity before it keeps after
+  (1 untouched, 0 stopped, < 0 reversed), where it slid at 0.2 m/s or more.
 
     python investigations/toss_friction.py data/CubeToss --split val
 
@@ -76,15 +78,25 @@ def spin(quaternion, i: int, dt: float) -> np.ndarray:
     return rotation_vector(matrix_to_quaternion(R[1] @ R[0].mT)).numpy() / (2 * dt)
 
 
-def first_impact(position, quaternion, c: int, dt: float, gravity: float) -> tuple[float, float, float] | None:
-    """(|Δv_t| / Δv_n, Δv_n in m/s, |Δω| in rad/s) across the first contact at frame ``c``, or None near the ends."""
+def first_impact(
+    position, quaternion, c: int, dt: float, gravity: float, half_extents
+) -> tuple[float, float, float, float, float] | None:
+    """(|Δv_t| / Δv_n, Δv_n in m/s, |Δω| in rad/s, slip before in m/s, slip kept) across the first contact at frame
+    ``c``, or None near the ends.  The slip is the horizontal velocity of the corner lowest at ``c``; kept is its
+    velocity after along its direction before, over its speed before: 1 untouched, 0 stopped, < 0 reversed."""
     if c < 4 or c + 5 >= len(position):
         return None
     before = (position[c - 1] - position[c - 3]) / (2 * dt)
     after = (position[c + 4] - position[c + 2]) / (2 * dt)
     dn = after[2] - before[2] + gravity * 5 * dt
     dw = np.linalg.norm(spin(quaternion, c + 3, dt) - spin(quaternion, c - 2, dt))
-    return float(np.linalg.norm(after[:2] - before[:2]) / dn), float(dn), float(dw)
+    corners = position[:, None] + rotate(quaternion, box_vertices(half_extents))  # (frames, 8, 3)
+    k = int(np.argmin(corners[c, :, 2]))
+    slip0 = (corners[c - 1, k, :2] - corners[c - 3, k, :2]) / (2 * dt)
+    slip1 = (corners[c + 4, k, :2] - corners[c + 2, k, :2]) / (2 * dt)
+    speed = float(np.linalg.norm(slip0))
+    kept = float(slip1 @ slip0) / speed**2 if speed > 0 else float("nan")
+    return float(np.linalg.norm(after[:2] - before[:2]) / dn), float(dn), float(dw), speed, kept
 
 
 def summary(sliding: np.ndarray, ratios: np.ndarray, gravity: float) -> dict:
@@ -100,6 +112,8 @@ def summary(sliding: np.ndarray, ratios: np.ndarray, gravity: float) -> dict:
             }
     impacts = ratios[ratios[:, 1] > 0.5]  # (impacts of at least 0.5 m/s)
     r = impacts[:, 0]
+    slipping = impacts[impacts[:, 3] > 0.2]  # (the lowest corner slipping at 0.2 m/s or more before)
+    kept = slipping[:, 4]
     return {
         "flat_sliding_deceleration": bins,
         "first_impact_ratio": {
@@ -107,6 +121,13 @@ def summary(sliding: np.ndarray, ratios: np.ndarray, gravity: float) -> dict:
             "median": round(float(np.median(r)), 3),
             "p25_p75_p90": [round(float(v), 3) for v in np.percentile(r, [25, 75, 90])],
             "spin_change_median_rad_s": round(float(np.median(impacts[:, 2])), 2),
+        },
+        "first_impact_corner_slip": {
+            "impacts": len(kept),
+            "slip_before_median_m_s": round(float(np.median(slipping[:, 3])), 3),
+            "kept_p10_p25_p50_p75_p90": [round(float(v), 3) for v in np.percentile(kept, [10, 25, 50, 75, 90])],
+            "reversed": int((kept < 0).sum()),
+            "stopped_within_0.1": int((np.abs(kept) < 0.1).sum()),
         },
     }
 
@@ -162,7 +183,7 @@ def main() -> None:
         sliding, ratios = [], []
         for i, (position, quaternion) in enumerate(poses):
             sliding.append(flat_sliding(position, quaternion, tosses.dt, height, half))
-            ratio = first_impact(position, quaternion, first_contact[i], tosses.dt, gravity)
+            ratio = first_impact(position, quaternion, first_contact[i], tosses.dt, gravity, half)
             if ratio is not None:
                 ratios.append(ratio)
         return summary(np.concatenate(sliding), np.array(ratios), gravity)
