@@ -115,6 +115,32 @@ def test_bad_arguments_and_the_time_left():
     assert progress.left() == pytest.approx(60.0 + 11.0, abs=0.1)
 
 
+def test_a_running_run_is_shown_at_its_epoch_and_its_time_left_follows_its_pace(tmp_path):
+    """A run resumed at epoch 2 of 10 that has reached epoch 4 in 40 s has 6 epochs left at 20 s each; the line
+    shows its epoch; a run whose epochs have not advanced here falls back on its expected time."""
+    run = tmp_path / "run"
+    (run / "logs" / "csv" / "version_0").mkdir(parents=True)
+    (run / "config.json").write_text('{"args": {"task": "BP5", "model": "CM-CD-CLNN", "epochs": 10}}')
+    log = run / "logs" / "csv" / "version_0" / "metrics.csv"
+
+    def logged(last_epoch: int) -> None:  # (3 rows an epoch; the epoch is not the first column)
+        rows = [f"{0.1 * e},{e},{3 * e + k}" for e in range(last_epoch + 1) for k in range(3)]
+        log.write_text("\n".join(["train/loss,epoch,step", *rows]) + "\n")
+
+    logged(2)
+    lines = []
+    progress = Progress(1, 0, 1, lines.append, expected={"a": 1000.0}, pending=["a"], runs={"a": run})
+    progress.start("a")
+    progress.running["a"] -= 40.0
+    assert progress.left() == pytest.approx(1000.0 - 40.0, abs=0.1)  # (no epoch done here yet: the expected time)
+    logged(4)
+    assert progress.left() == pytest.approx(6 * 20.0, abs=0.1)
+    progress.show()
+    assert "a (epoch 4/10, 0m40s)" in lines[-1] and "left: about 2m00s" in lines[-1]
+    log.write_text("train/loss,epoch\n0.1,not-a-number\n")  # (an unreadable log: the expected time again)
+    assert progress.left() == pytest.approx(960.0, abs=0.1)
+
+
 def test_expected_times_come_from_the_same_models_earlier_runs(tmp_path):
     import json
 

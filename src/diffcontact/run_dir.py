@@ -180,6 +180,21 @@ class RunDir:
             return None
         return metrics if isinstance(metrics, dict) else None
 
+    def epochs(self) -> tuple[int, int] | None:
+        """(epochs begun, epochs planned) of a run in training: the epoch of the last row of its newest CSV log (the
+        rows of epoch E, counted from 0, begin once E epochs are done) and config.json's ``epochs``; None before
+        both are written.  Reads only the log's first and last lines (a long run's log grows to megabytes)."""
+        logs = sorted(self.csv_logs.glob("version_*/metrics.csv"), key=lambda p: p.stat().st_mtime)
+        try:
+            planned = int(json.loads(self.config.read_text())["args"]["epochs"])
+            with logs[-1].open("rb") as fh:
+                column = fh.readline().decode().strip().split(",").index("epoch")
+                fh.seek(max(fh.seek(0, 2) - 65536, 0))
+                last = fh.read().decode(errors="replace").strip().splitlines()[-1]
+            return int(last.split(",")[column]), planned
+        except (OSError, ValueError, KeyError, TypeError, IndexError):
+            return None
+
     def times(self) -> tuple[float | None, float | None]:
         """Training wall time (learned.json, over all the sessions of a resumed run) and the evaluation's
         (eval/metrics.json), in s (None: unknown)."""

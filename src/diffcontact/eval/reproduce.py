@@ -105,7 +105,9 @@ class Progress:
     """Which runs are going, how many are done, and the time left.
 
     ``expected``: the expected seconds of a run by label (:func:`expected_seconds`: earlier runs of the same model
-    and task in OUT); a run without one counts as the mean of the runs finished in this session."""
+    and task in OUT); a run without one counts as the mean of the runs finished in this session.  ``runs``: the run
+    directory of each label; a running run whose epochs have advanced in this session is shown at its epoch, and
+    the time its training has left is its pace so far times the epochs it has left."""
 
     def __init__(
         self,
@@ -115,18 +117,23 @@ class Progress:
         echo: Callable[[str], None],
         expected: dict[str, float] | None = None,
         pending: list[str] | None = None,
+        runs: dict[str, Path] | None = None,
     ):
         self.total, self.done, self.jobs, self.echo = total, done, jobs, echo
         self.expected = dict(expected or {})
         self.waiting = list(pending) if pending is not None else []  # (labels not started yet)
         self.started = time.perf_counter()
         self.running: dict[str, float] = {}
+        self.runs = {label: RunDir(path) for label, path in (runs or {}).items()}
+        self.first_epoch: dict[str, int] = {}  # (the epoch a running run had begun when it started here)
         self.durations: list[float] = []
         self.lock = threading.Lock()
 
     def start(self, label: str) -> None:
+        epochs = self.runs[label].epochs() if label in self.runs else None
         with self.lock:
             self.running[label] = time.perf_counter()
+            self.first_epoch[label] = epochs[0] if epochs else 0
             if label in self.waiting:
                 self.waiting.remove(label)
         self.show()
@@ -145,17 +152,31 @@ class Progress:
         now = time.perf_counter()
         unnamed = self.total - self.done - len(self.running) - len(self.waiting)  # (counted, not named)
         guesses = [self.expected.get(k, mean) for k in self.waiting] + [mean] * unnamed
-        running = [(self.expected.get(k, mean), now - t) for k, t in self.running.items()]
+        running = [self._running_left(k, now - t, mean) for k, t in self.running.items()]
         known = [g for g in guesses if g is not None]
-        known_running = [(g, spent) for g, spent in running if g is not None]
-        if len(known) < len(guesses) or len(known_running) < len(running):
+        if len(known) < len(guesses) or any(r is None for r in running):
             return None
-        return (sum(known) + sum(max(g - spent, 0.0) for g, spent in known_running)) / self.jobs
+        return (sum(known) + sum(r for r in running if r is not None)) / self.jobs
+
+    def _running_left(self, label: str, spent: float, mean: float | None) -> float | None:
+        """Seconds a running run has left: from its epochs' pace where they advanced here, else its expected
+        time less what it has had."""
+        epochs = self.runs[label].epochs() if label in self.runs else None
+        if epochs is not None and epochs[0] > self.first_epoch.get(label, 0):
+            pace = spent / (epochs[0] - self.first_epoch.get(label, 0))
+            return pace * max(epochs[1] - epochs[0], 0)
+        guess = self.expected.get(label, mean)
+        return None if guess is None else max(guess - spent, 0.0)
+
+    def _running(self, label: str, spent: float) -> str:
+        epochs = self.runs[label].epochs() if label in self.runs else None
+        at = f"epoch {epochs[0]}/{epochs[1]}, " if epochs is not None else ""
+        return f"{label} ({at}{_duration(spent)})"
 
     def show(self) -> None:
         with self.lock:
             now = time.perf_counter()
-            going = ", ".join(f"{k} ({_duration(now - t)})" for k, t in self.running.items()) or "none"
+            going = ", ".join(self._running(k, now - t) for k, t in self.running.items()) or "none"
             left = self.left()
         eta = "unknown until a run finishes" if left is None else f"about {_duration(left)}"
         self.echo(
@@ -284,8 +305,9 @@ def reproduce(
     done = sum(c.todo == "done" for c in cells)
     jobs = min(jobs, max(len(todo), 1))  # (a cluster backend may have every cell in flight)
     progress = Progress(
-        len(todo) + done, done, jobs, echo, expected_seconds(out, todo), pending=[c.label for c in todo]
-    )
+        len(todo) + done, done, jobs, echo, expected_seconds(out, todo), pending=[c.label for c in todo],
+        runs={c.label: c.run for c in todo},
+    )  # fmt: skip
 
     runner = cell_runner(backend, out, threads)
 
