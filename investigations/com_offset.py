@@ -27,8 +27,8 @@ import torch
 from scipy.stats import chisquare
 from torch import nn
 
-from diffcontact.eval.pose_metrics import box_toss_metrics, paired_difference, per_toss_position_error
-from diffcontact.eval.tosses import predict_tosses, recorded_tosses
+from diffcontact.eval.pose_metrics import paired_difference, per_toss_position_error
+from diffcontact.eval.tosses import predict_tosses, recorded_tosses, score_tosses
 from diffcontact.models.model import known_model
 from diffcontact.systems import box
 from diffcontact.systems.poses import points_to_pose, pose_to_points, quaternion_to_matrix
@@ -107,11 +107,8 @@ def main() -> None:
         box.corners = corners
     net = ShiftedCentre(known_model(task), offset)
     predicted = predict_tosses(net, args.data, args.split)
+    metrics = score_tosses(predicted, args.data, args.split)
     tosses, request = recorded_tosses(args.data, args.split)
-    metrics = box_toss_metrics(
-        predicted["position"], predicted["quaternion"], tosses.position, tosses.quaternion, tosses.offsets,
-        request["half_extents_m"], request["table_height_m"],
-    )  # fmt: skip
     last = tosses.offsets[1:] - 1
     recorded, ended = face_down(tosses.quaternion[last]), face_down(predicted["quaternion"][last])
     faces = {"predicted": dict(Counter(ended)), "recorded": dict(Counter(recorded))}

@@ -20,8 +20,7 @@ import json
 
 import torch
 
-from diffcontact.eval.pose_metrics import box_toss_metrics
-from diffcontact.eval.tosses import predict_tosses, recorded_tosses
+from diffcontact.eval.tosses import predict_tosses, score_tosses
 from diffcontact.models.model import known_model
 from diffcontact.solver.contact_solver import ContactSolver
 from diffcontact.systems.registry import build_task
@@ -62,11 +61,7 @@ def main() -> None:
     net = known_model(build_task(args.task, overrides))
     two_friction_coefficients(args.mu_impact, args.speed)
     predicted = predict_tosses(net, args.data, args.split)
-    tosses, request = recorded_tosses(args.data, args.split)
-    metrics = box_toss_metrics(
-        predicted["position"], predicted["quaternion"], tosses.position, tosses.quaternion, tosses.offsets,
-        request["half_extents_m"], request["table_height_m"],
-    )  # fmt: skip
+    metrics = score_tosses(predicted, args.data, args.split)
     print(json.dumps({"settings": vars(args), "metrics": metrics}, indent=1))
 
 
