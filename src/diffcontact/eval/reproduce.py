@@ -130,7 +130,7 @@ class Progress:
         self.lock = threading.Lock()
 
     def start(self, label: str) -> None:
-        epochs = self.runs[label].epochs() if label in self.runs else None
+        epochs = self._epochs(label)
         with self.lock:
             self.running[label] = time.perf_counter()
             self.first_epoch[label] = epochs[0] if epochs else 0
@@ -158,10 +158,14 @@ class Progress:
             return None
         return (sum(known) + sum(r for r in running if r is not None)) / self.jobs
 
+    def _epochs(self, label: str) -> tuple[int, int] | None:
+        """(epochs begun, planned) of a labelled run (``RunDir.epochs``), None where unknown."""
+        return self.runs[label].epochs() if label in self.runs else None
+
     def _running_left(self, label: str, spent: float, mean: float | None) -> float | None:
         """Seconds a running run has left: from its epochs' pace where they advanced here, else its expected
         time less what it has had."""
-        epochs = self.runs[label].epochs() if label in self.runs else None
+        epochs = self._epochs(label)
         if epochs is not None and epochs[0] > self.first_epoch.get(label, 0):
             pace = spent / (epochs[0] - self.first_epoch.get(label, 0))
             return pace * max(epochs[1] - epochs[0], 0)
@@ -169,7 +173,7 @@ class Progress:
         return None if guess is None else max(guess - spent, 0.0)
 
     def _running(self, label: str, spent: float) -> str:
-        epochs = self.runs[label].epochs() if label in self.runs else None
+        epochs = self._epochs(label)
         at = f"epoch {epochs[0]}/{epochs[1]}, " if epochs is not None else ""
         return f"{label} ({at}{_duration(spent)})"
 

@@ -10,11 +10,11 @@ code passed +∇V).
 One step, batched over samples and relations (static object weights, no loop):
     relation input   [o_recv − o_send (2d), a_recv (2), a_send (2), relation attributes (D_R)]
     effects          φ_R (hidden ReLU layers) -> effect size, summed per receiver
+    object input     [x, v (2d), attributes (2), external force (d), summed effect]
+    output           φ_O (one hidden ReLU layer) -> d per point
 A relation that the graph lists more than once (the rope's two sides of a limit share their slot, so their inputs
 are the same) goes through φ_R once and its effect counts as often as it is listed: the same sums, with half of φ_R's
 work on the ropes.
-    object input     [x, v (2d), attributes (2), external force (d), summed effect]
-    output           φ_O (one hidden ReLU layer) -> d per point
 """
 
 from __future__ import annotations
