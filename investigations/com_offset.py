@@ -1,12 +1,10 @@
-"""The exact model with its centre of mass off the box's centre (an experiment on the real cube tosses).
+"""The nominal model with its centre of mass off the box's centre (an experiment on the real cube tosses).
 
 The recorded cube ends its tosses on its +z face (body frame) in 124 of 470 tosses, where a symmetric cube would
 end on each face in about 78 (χ² p 5e-7); it starts them on each face about equally (p 0.31). A cube whose mass
-sits nearer one face would do that. The task's cube has its centre of mass at its centre. This script scores the
-nominal model of the task file on a split's whole tosses (as ``evaluate`` does) with the centre of mass at
-``--offset`` (body frame, mm) from the centre: the corners relative to the centre of mass move by −offset, each
-toss starts from its recorded first state moved to the centre of mass, and the predicted centre of mass is moved
-back to the box's centre before scoring. The package has no such option.
+sits nearer one face would do that. This script scores the nominal model of the task file (μ, e, mass, moments) on
+a split's whole tosses (as ``evaluate`` does) with its centre of mass at ``--offset`` (body frame, mm) from the
+box's centre (the task file's ``body.centre_of_mass``, which a trained model learns).
 
     python investigations/com_offset.py data/CubeToss --split val --offset 0 0 3
     python investigations/com_offset.py data/CubeToss --faces     # the final face counts of every toss
@@ -25,13 +23,11 @@ from collections import Counter
 import numpy as np
 import torch
 from scipy.stats import chisquare
-from torch import nn
 
 from diffcontact.eval.pose_metrics import paired_difference, per_toss_position_error
 from diffcontact.eval.tosses import predict_tosses, recorded_tosses, score_tosses
 from diffcontact.models.model import known_model
-from diffcontact.systems import box
-from diffcontact.systems.poses import points_to_pose, pose_to_points, quaternion_to_matrix
+from diffcontact.systems.poses import quaternion_to_matrix
 from diffcontact.systems.registry import build_task
 
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
@@ -42,31 +38,6 @@ def face_down(quaternion: np.ndarray) -> list[str]:
     down = -quaternion_to_matrix(torch.from_numpy(quaternion)).numpy()[:, 2, :]  # (n, 3): world −z in the body frame
     axis = np.abs(down).argmax(1)
     return [("+" if down[i, k] > 0 else "-") + "xyz"[k] for i, k in enumerate(axis)]
-
-
-class ShiftedCentre(nn.Module):
-    """``net`` (x0, v0, frames) -> (x, v) of a body whose centre of mass is ``offset`` (3,) m from the box's centre
-    in the body frame: given and returned states are the box centre's; ``net`` rolls out the centre of mass's."""
-
-    def __init__(self, net: nn.Module, offset: torch.Tensor):
-        super().__init__()
-        self.net, self.offset = net, offset
-
-    def shift(self, x: torch.Tensor, v: torch.Tensor, sign: float) -> tuple[torch.Tensor, torch.Tensor]:
-        position, quaternion, velocity, omega = points_to_pose(x.double(), v.double())
-        R = quaternion_to_matrix(quaternion)
-        arm = (R @ self.offset[:, None])[..., 0]  # (..., 3) the offset in the world frame
-        turn = (R @ torch.linalg.cross(omega, self.offset.expand_as(omega))[..., None])[..., 0]  # (its rate)
-        x1, v1 = pose_to_points(position + sign * arm, quaternion, velocity + sign * turn, omega)
-        return x1.to(x), v1.to(v)
-
-    def forward(self, x0: torch.Tensor, v0: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
-        x, v = self.net(*self.shift(x0, v0, 1.0), frames)
-        finite = (torch.isfinite(x) & torch.isfinite(v)).flatten(2).all(-1)  # (a diverged frame stays as it is)
-        xb, vb = self.shift(
-            torch.where(finite[..., None, None], x, 0.0), torch.where(finite[..., None, None], v, 0.0), -1.0
-        )
-        return torch.where(finite[..., None, None], xb, x), torch.where(finite[..., None, None], vb, v)
 
 
 def main() -> None:
@@ -98,14 +69,8 @@ def main() -> None:
         print(json.dumps(result, indent=1))
         return
 
-    offset = torch.tensor(args.offset, dtype=torch.float64) * 1e-3
-    corners = box.corners
-    box.corners = lambda half: corners(half) - offset  # (the corners relative to the centre of mass)
-    try:
-        task = build_task(args.task)
-    finally:
-        box.corners = corners
-    net = ShiftedCentre(known_model(task), offset)
+    task = build_task(args.task, {"body": {"centre_of_mass": [1e-3 * o for o in args.offset]}})
+    net = known_model(task)
     predicted = predict_tosses(net, args.data, args.split)
     metrics = score_tosses(predicted, args.data, args.split)
     tosses, request = recorded_tosses(args.data, args.split)

@@ -31,9 +31,9 @@ def with_masses(params, masses: torch.Tensor, gravity_follows: bool):
     else on the original masses."""
     from diffcontact.state import Inertia
 
-    pot, m0 = params.potential, params.inertia.masses
+    pot = params.potential
     if not gravity_follows:
-        pot = lambda x, _masses: params.potential(x, m0)  # noqa: E731
+        pot = lambda x, _inertia: params.potential(x, params.inertia)  # noqa: E731
     return params.replace(inertia=Inertia(masses, params.inertia.moments), potential=pot)
 
 

@@ -19,8 +19,8 @@ from diffcontact.systems import build_task
 TOL = 1e-12  # float64: rounding only
 
 
-def _autograd_force(potential, x, masses=None):
-    """−∇V by autograd with the graph kept (the path the closed form replaces); a network's V ignores masses."""
+def _autograd_force(potential, x, inertia=None):
+    """−∇V by autograd with the graph kept (the path the closed form replaces); a network's V ignores the inertia."""
     with torch.enable_grad():
         xg = x if x.requires_grad else x.detach().requires_grad_(True)
         (g,) = torch.autograd.grad(potential(xg).sum(), xg, create_graph=True)
@@ -29,34 +29,41 @@ def _autograd_force(potential, x, masses=None):
 
 @pytest.mark.parametrize("task_name", ["BP5", "CP3", "Rope", "Gyro", "Cube"])
 def test_known_potentials_force_equals_autograd_gradient_and_its_derivatives(task_name):
-    """Gravity (on each body's centre), the rope's springs (to its anchor too) and their sum: the written-out force
-    against autograd's gradient of V, and the force's derivatives w.r.t. the positions and the masses."""
+    """Gravity (on each body's centre of mass: the box's off its centre), the rope's springs (to its anchor too) and
+    their sum: the written-out force against autograd's gradient of V, and the force's derivatives w.r.t. the
+    positions, the masses and the box's centre of mass."""
     task = build_task(task_name)
     gen = torch.Generator().manual_seed(3)
     pot = task.params.potential
     assert isinstance(pot, ForcePotential)
     x = task.sample(3, seed=3).x
     x = (x + 0.01 * torch.randn(x.shape, generator=gen, dtype=torch.float64)).requires_grad_(True)
-    masses = task.params.inertia.masses * (1 + 0.1 * torch.rand(task.params.inertia.masses.shape, generator=gen))
+    true = task.params.inertia
+    masses = true.masses * (1 + 0.1 * torch.rand(true.masses.shape, generator=gen))
     masses = masses.to(torch.float64).requires_grad_(True)
+    com = None if true.com is None else (0.01 * torch.randn(true.com.shape, generator=gen, dtype=torch.float64))
+    inertia = Inertia(masses, true.moments, None if com is None else com.requires_grad_(True))
     w = torch.randn(x.shape, generator=gen, dtype=torch.float64)
-    fast, slow = pot.force(x, masses), gradient_force(pot, x, masses)
+    fast, slow = pot.force(x, inertia), gradient_force(pot, x, inertia)
     assert torch.allclose(fast, slow, rtol=0, atol=TOL)
     assert (fast.abs().max() > 0) == bool(pot.terms)  # (BP5: no gravity, an empty sum)
-    assert torch.equal(potential_force(task.params, x), pot.force(x, task.params.inertia.masses))  # (dynamics use it)
+    assert torch.equal(potential_force(task.params, x), pot.force(x, task.params.inertia))  # (dynamics use it)
     if not pot.terms:
         return
-    ga = torch.autograd.grad((fast * w).sum(), [x, masses], allow_unused=True, materialize_grads=True)
-    gb = torch.autograd.grad((slow * w).sum(), [x, masses], allow_unused=True, materialize_grads=True)
+    wrt = [x, masses] + ([] if com is None else [inertia.com])
+    ga = torch.autograd.grad((fast * w).sum(), wrt, allow_unused=True, materialize_grads=True)
+    gb = torch.autograd.grad((slow * w).sum(), wrt, allow_unused=True, materialize_grads=True)
     for a, b in zip(ga, gb):
         assert torch.allclose(a, b, rtol=0, atol=1e-10)
+    if com is not None:  # (the force's moment about the box's centre is that of m g at the centre of mass)
+        assert ga[-1].abs().max() > 0
 
 
 def test_learned_gravity_force_equals_autograd_gradient():
     pot = LearnedGravity(4, generator=torch.Generator().manual_seed(0))
     x = torch.randn(2, 8, 3, dtype=torch.float64)
-    masses = torch.tensor([0.5, 2.0], dtype=torch.float64)
-    fast, slow = pot.force(x, masses), gradient_force(pot, x, masses)
+    inertia = Inertia(torch.tensor([0.5, 2.0], dtype=torch.float64), torch.ones(2, 3, dtype=torch.float64))
+    fast, slow = pot.force(x, inertia), gradient_force(pot, x, inertia)
     assert torch.allclose(fast, slow, rtol=0, atol=TOL) and fast[:, 1::4].abs().max() == 0
     (a,) = torch.autograd.grad(fast.sum(), pot.log_g)
     (b,) = torch.autograd.grad(slow.sum(), pot.log_g)

@@ -13,10 +13,10 @@ from dataclasses import dataclass, replace
 
 import torch
 
-Potential = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-"""A potential energy V(x, masses): positions (B, P, d) and the body masses (n_bodies,) in kg -> (B,), in joules
-(any consistent unit).  The masses are those of the Params holding V (gravity reads them; most terms ignore them),
-so replacing the inertia never leaves the potential with other masses."""
+Potential = Callable[[torch.Tensor, "Inertia"], torch.Tensor]
+"""A potential energy V(x, inertia): positions (B, P, d) and the bodies' :class:`Inertia` -> (B,), in joules (any
+consistent unit).  The inertia is that of the Params holding V (gravity reads its masses and centres of mass; most
+terms ignore it), so replacing the inertia never leaves the potential with other masses."""
 
 
 def with_anchors(x: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
@@ -32,9 +32,9 @@ class ForcePotential(ABC):
     same values, a cheaper training step."""
 
     @abstractmethod
-    def force(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
-        """−∇V(x): positions (B, P, d) in m and the body masses (n_bodies,) in kg (as V reads them; the networks
-        ignore them) -> forces (B, P, d) in N."""
+    def force(self, x: torch.Tensor, inertia: Inertia) -> torch.Tensor:
+        """−∇V(x): positions (B, P, d) in m and the bodies' inertia (as V reads it; the networks ignore it) -> forces
+        (B, P, d) in N."""
 
 
 @dataclass(frozen=True)
@@ -62,21 +62,24 @@ class State:
 
 @dataclass(frozen=True)
 class Inertia:
-    """Masses (n_bodies,) in kg and per-axis second moments per unit mass (n_bodies, k) in m².
+    """Masses (n_bodies,) in kg, per-axis second moments per unit mass about the centre of mass (n_bodies, k) in m²,
+    and where given the centre of mass ``com`` (n_bodies, k) in m, in the body frame from the body's first point.
 
     k = 0 for point masses, d for extended bodies (2D body: 3 points, 3D body: 4 points). For a disk of
-    radius r the moments are r²/4 per axis.
+    radius r the moments are r²/4 per axis. ``com`` None: the centre of mass is the first point (every system but
+    the box, whose first point is its geometric centre and whose mass may sit off it).
     """
 
     masses: torch.Tensor
     moments: torch.Tensor
+    com: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
 class Params:
     """The physical properties a model may learn.
 
-    inertia: :class:`Inertia`; potential: V(x, masses) -> (B,) (:data:`Potential`, read through
+    inertia: :class:`Inertia`; potential: V(x, inertia) -> (B,) (:data:`Potential`, read through
     :meth:`potential_energy`); mu: (n_slots,) friction coefficients >= 0; e: (n_slots,) Poisson coefficients of
     restitution in [0, 1].
     """
@@ -87,8 +90,8 @@ class Params:
     e: torch.Tensor
 
     def potential_energy(self, x: torch.Tensor) -> torch.Tensor:
-        """V(x) (B,) in J at positions x (B, P, d), with this Params' masses."""
-        return self.potential(x, self.inertia.masses)
+        """V(x) (B,) in J at positions x (B, P, d), with this Params' inertia."""
+        return self.potential(x, self.inertia)
 
     def replace(self, **changes) -> Params:
         """A copy with some fields replaced (e.g. ``params.replace(mu=new_mu)``)."""

@@ -1,9 +1,16 @@
 """Inertia of point masses and extended bodies in Cartesian coordinates, in closed form per body.
 
-An extended body in d dimensions is d + 1 points: its centre c and c + e_k for the unit body axes e_k.
-With mass m and per-axis second moments per unit mass μ_k, its block (acting identically on each of the d
-coordinates) is M = m [[1 + Σμ, −μᵀ], [−μ, diag μ]] and M⁻¹ = (1/m) (11ᵀ + diag(0, 1/μ)). A point mass is
-the 1×1 block m. The full mass matrix is kron(blockdiag(blocks), I_d) in the (P, d) point layout.
+An extended body in d dimensions is d + 1 points: its first point c and c + e_k for the unit body axes e_k. A
+material point at body coordinates r is at (1 − Σr) c + Σ r_k (c + e_k), so with mass m, centre of mass δ (body
+frame, from c) and per-axis second moments per unit mass μ_k about the centre of mass, the body's block (acting
+identically on each of the d coordinates) is m E[w wᵀ] over its mass, w = (1 − Σr, r):
+
+    M = m (u uᵀ + [[Σμ, −μᵀ], [−μ, diag μ]]),  u = (1 − Σδ, δ) the centre of mass's weights on the points,
+    M⁻¹ = (1/m) ((1 + δ·a) 11ᵀ − â1ᵀ − 1âᵀ + diag(0, 1/μ)),  a = δ/μ, â = (0, a).
+
+With δ = 0 (``Inertia.com`` None: every system but the box) they are M = m [[1 + Σμ, −μᵀ], [−μ, diag μ]] and
+M⁻¹ = (1/m) (11ᵀ + diag(0, 1/μ)). A point mass is the 1×1 block m. The full mass matrix is
+kron(blockdiag(blocks), I_d) in the (P, d) point layout.
 """
 
 from __future__ import annotations
@@ -14,29 +21,53 @@ from diffcontact.state import Inertia
 
 
 def body_blocks(inertia: Inertia) -> tuple[torch.Tensor, torch.Tensor]:
-    """(M, M⁻¹) blocks, each (n_bodies, k+1, k+1), from masses (n_bodies,) and moments (n_bodies, k)."""
+    """(M, M⁻¹) blocks, each (n_bodies, k+1, k+1), from masses (n_bodies,), moments (n_bodies, k) and the centre of
+    mass ``com`` (n_bodies, k) if given."""
     m, mom = inertia.masses, inertia.moments
     k = mom.shape[-1]
     if k == 0:
         return m[:, None, None], (1.0 / m)[:, None, None]
     top = torch.cat([(1.0 + mom.sum(-1, keepdim=True)), -mom], dim=-1)  # (n, k+1)
     low = torch.cat([-mom[..., None], torch.diag_embed(mom)], dim=-1)  # (n, k, k+1)
-    M = m[:, None, None] * torch.cat([top[:, None, :], low], dim=-2)
     inv_diag = torch.cat([torch.zeros_like(mom[:, :1]), 1.0 / mom], dim=-1)
     ones = torch.ones(m.shape[0], k + 1, k + 1, dtype=m.dtype, device=m.device)
-    Minv = (ones + torch.diag_embed(inv_diag)) / m[:, None, None]
+    if inertia.com is None:
+        M = m[:, None, None] * torch.cat([top[:, None, :], low], dim=-2)
+        Minv = (ones + torch.diag_embed(inv_diag)) / m[:, None, None]
+        return M, Minv
+    com = inertia.com.to(mom)
+    u = torch.cat([1.0 - com.sum(-1, keepdim=True), com], dim=-1)  # (n, k+1): the centre of mass's weights
+    spin = torch.cat([(top - torch.eye(k + 1, dtype=mom.dtype, device=mom.device)[0])[:, None, :], low], dim=-2)
+    M = m[:, None, None] * (u[:, :, None] * u[:, None, :] + spin)
+    a = torch.cat([torch.zeros_like(mom[:, :1]), com / mom], dim=-1)  # (n, k+1): â = (0, δ/μ)
+    c = 1.0 + (com * com / mom).sum(-1)  # (n,)
+    Minv = (c[:, None, None] * ones - a[:, :, None] - a[:, None, :] + torch.diag_embed(inv_diag)) / m[:, None, None]
     return M, Minv
 
 
 def inverse_factor_blocks(inertia: Inertia) -> torch.Tensor:
     """Blocks L (n_bodies, k+1, k+1) with L Lᵀ = the M⁻¹ blocks of :func:`body_blocks`, in closed form:
-    L = m^(−1/2) [1 | diag(0, μ^(−1/2))] (first column all ones), exact for any moments (no factorisation)."""
+    L = m^(−1/2) [1 | B] (first column all ones), B = [0; diag μ^(−1/2)] − 1 (δ/√μ)ᵀ, exact for any moments and
+    centre of mass δ (no factorisation; δ = 0 without ``com``)."""
     m, mom = inertia.masses, inertia.moments
     k = mom.shape[-1]
     ones = torch.ones(m.shape[0], k + 1, 1, dtype=m.dtype, device=m.device)
     zero = torch.zeros(m.shape[0], 1, dtype=m.dtype, device=m.device)
     spread = torch.diag_embed(torch.cat([zero, mom.rsqrt()], dim=-1))[..., 1:]
+    if inertia.com is not None:
+        spread = spread - (inertia.com.to(mom) * mom.rsqrt())[:, None, :]
     return torch.cat([ones, spread], dim=-1) * m.rsqrt()[:, None, None]
+
+
+def centre_weights(inertia: Inertia, points_per_body: int) -> torch.Tensor:
+    """The mass each point carries for a uniform field (gravity): (n_bodies, points_per_body) in kg, m u with u the
+    centre of mass's weights on the body's points (all on the first point without ``com``)."""
+    m = inertia.masses
+    if inertia.com is None:
+        w = torch.zeros(m.shape[0], points_per_body, dtype=m.dtype, device=m.device)
+        return torch.cat([m[:, None], w[:, 1:]], dim=-1)
+    com = inertia.com.to(m)
+    return m[:, None] * torch.cat([1.0 - com.sum(-1, keepdim=True), com], dim=-1)
 
 
 def apply_blocks(blocks: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

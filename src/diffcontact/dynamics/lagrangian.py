@@ -22,8 +22,8 @@ def potential_force(params: Params, x: torch.Tensor) -> torch.Tensor:
     differentiable w.r.t. x and the potential's parameters; under ``torch.no_grad`` it is not.
     """
     if isinstance(params.potential, ForcePotential):
-        return params.potential.force(x, params.inertia.masses)
-    return gradient_force(params.potential, x, params.inertia.masses)
+        return params.potential.force(x, params.inertia)
+    return gradient_force(params.potential, x, params.inertia)
 
 
 def constrained_acceleration(

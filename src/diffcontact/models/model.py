@@ -82,7 +82,8 @@ def build_model(
     paper's).  ``potential``: "mlp" (the paper's learned network), "linked" (that network plus a learned potential of
     each link's stretch, for a system with links: the rope), "gravity" (uniform gravity along −z, −y in 2-D, of a
     learned strength g) or "known" (the task's own, not learned); ``moments_init``: the scale (m² per unit
-    mass) around which the learned second moments start (about the square of the bodies' size).
+    mass) around which the learned second moments start (about the square of the bodies' size). A task whose bodies
+    have a centre of mass off their first point (``Inertia.com``: the box) has it learned, from that point.
     """
     from diffcontact.models.baselines import BASELINE_NAMES, build_baseline
 
@@ -120,5 +121,6 @@ def build_model(
         moments_init=moments_init,
         known_potential=task.params.potential if potential == "known" else None,
         links=system.links,
+        com=task.params.inertia.com is not None,  # (the box: its centre of mass, learned from its centre)
     )
     return ContactModelNet(sim, params, task.dt, name)

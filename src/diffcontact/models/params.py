@@ -2,6 +2,7 @@
 
 Structure stays known (bodies, constraints, contact geometry); the values are learned:
 - inertia: masses and per-axis moments per unit mass through exp (positive by construction), 0.1·N(0, 1) init;
+  where the task's bodies have a centre of mass off their first point (the box), that offset too, from 0;
 - potential: an MLP over all positions (3 hidden layers of 256, Softplus, orthogonal weights), as published;
 - μ and e "projected" (the default): the parameter is the value itself, kept in μ ≥ 0 and e ∈ [0, 1] by clamping
   after every optimiser step (``project_``), so that a value on its bound still gets the gradient that brings it
@@ -24,7 +25,7 @@ from typing import TYPE_CHECKING, cast
 import torch
 from torch import nn
 
-from diffcontact.dynamics.potentials import centre_force
+from diffcontact.dynamics.potentials import centre_force, field_energy
 from diffcontact.errors import ConfigError
 from diffcontact.state import ForcePotential, Inertia, Params
 
@@ -44,8 +45,8 @@ E_TRANSFORMS = {"projected": _identity, "hardsigmoid": nn.functional.hardsigmoid
 
 
 class MLPPotential(nn.Module, ForcePotential):
-    """V(x, masses): positions (B, P, d) -> (B,); an MLP over the flattened positions with Softplus activations
-    (the masses are not used: the potential is learned in whatever units the learned masses fix).
+    """V(x, inertia): positions (B, P, d) -> (B,); an MLP over the flattened positions with Softplus activations
+    (the inertia is not used: the potential is learned in whatever units the learned masses fix).
 
     Its force −∇V (:meth:`force`) is written out (backpropagation by hand), so that a training step differentiates
     it once instead of through autograd's double backward."""
@@ -64,10 +65,10 @@ class MLPPotential(nn.Module, ForcePotential):
                 bound = 1.0 / m.weight.shape[1] ** 0.5  # torch's default bias init, made reproducible
                 nn.init.uniform_(m.bias, -bound, bound, generator=generator)
 
-    def forward(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, inertia: Inertia | None = None) -> torch.Tensor:
         return self.net(x.flatten(1)).squeeze(-1)
 
-    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+    def force(self, x: torch.Tensor, inertia: Inertia | None = None) -> torch.Tensor:
         """−∇V(x) (B, P, d): the layers forward, then their transposes times the Softplus slopes (sigmoids) back.
 
         Equal to autograd's gradient up to rounding (Softplus' slope above its threshold, 20, is 1 there and the
@@ -104,11 +105,11 @@ class LinkedPotential(nn.Module, ForcePotential):
         self.pair = MLPPotential(1, 64, 2, generator=generator)  # (drawn after the network: its start is the same)
         self.links = links
 
-    def forward(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, inertia: Inertia | None = None) -> torch.Tensor:
         s, _ = self.links.stretch(x)
         return self.body(x) + self.pair(s.reshape(-1, 1, 1)).reshape(s.shape).sum(-1)
 
-    def force(self, x: torch.Tensor, masses: torch.Tensor | None = None) -> torch.Tensor:
+    def force(self, x: torch.Tensor, inertia: Inertia | None = None) -> torch.Tensor:
         """−∇V(x) (B, P, d): the network's, plus −φ'(s) u / spread on each link's point i and its opposite on j."""
         s, u = self.links.stretch(x)
         B, P = x.shape[:2]
@@ -133,13 +134,17 @@ class LearnedGravity(nn.Module, ForcePotential):
     def g(self) -> torch.Tensor:
         return self.log_g.exp()
 
-    def forward(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
-        return self.g * (x[:, :: self.stride, -1] * masses.to(x)).sum(-1)
+    def forward(self, x: torch.Tensor, inertia: Inertia) -> torch.Tensor:
+        return field_energy(self.g, self._up(x), self.stride, x, inertia)
 
-    def force(self, x: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
+    def force(self, x: torch.Tensor, inertia: Inertia) -> torch.Tensor:
+        return centre_force(self.g, self._up(x), self.stride, x, inertia)
+
+    @staticmethod
+    def _up(x: torch.Tensor) -> torch.Tensor:
         up = x.new_zeros(x.shape[-1])
         up[-1] = 1.0
-        return centre_force(self.g, up, self.stride, x, masses)
+        return up
 
 
 class LearnedParams(nn.Module):
@@ -148,7 +153,8 @@ class LearnedParams(nn.Module):
     n_moments: moments per body (0 for point masses, d for extended bodies); n_points·d: potential input size;
     n_slots: contact slots; homogeneous: one (μ, e) for all slots; potential: one of ``POTENTIALS`` (gravity: along
     the last axis, each body's centre its first of ``points_per_body`` points; known: ``known_potential``, fixed;
-    linked: the network plus a potential of each link's stretch, for a system with ``links``).
+    linked: the network plus a potential of each link's stretch, for a system with ``links``); com: learn each
+    body's centre of mass (extended bodies whose first point is not it: the box), from the first point.
     ``forward()`` returns Params.
     """
 
@@ -172,6 +178,7 @@ class LearnedParams(nn.Module):
         moments_init: float = 1.0,
         known_potential=None,
         links: Links | None = None,
+        com: bool = False,
     ):
         super().__init__()
         if potential not in POTENTIALS:
@@ -189,6 +196,10 @@ class LearnedParams(nn.Module):
             raise ConfigError(f"moments_init = {moments_init!r} is not a finite number > 0 (m² per unit mass)")
         noise = 0.1 * torch.randn(n_bodies, n_moments, generator=gen, dtype=dtype)
         self.log_moments = nn.Parameter(math.log(moments_init) + noise)  # (log 1 = 0: bit for bit the old start)
+        # the centre of mass (body frame, from the first point) in units of √moments_init, the radius of gyration the
+        # moments start at: Adam moves it about lr of that a step (1e-2 × 3.2 cm = 0.3 mm for the cube)
+        self.com_scale = math.sqrt(moments_init)
+        self.com_raw = nn.Parameter(torch.zeros(n_bodies, n_moments, dtype=dtype)) if com else None
         mu_raw = torch.rand(n_coef, generator=gen, dtype=dtype)  # (drawn in both cases: the same later draws)
         self.mu_raw = nn.Parameter(torch.zeros_like(mu_raw) if mu_transform == "projected" else mu_raw)
         e_raw = torch.randn(n_coef, generator=gen, dtype=dtype)
@@ -206,6 +217,13 @@ class LearnedParams(nn.Module):
             if known_potential is None:
                 raise ConfigError('potential = "known" needs the task\'s potential (known_potential)')
             self.potential = known_potential
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, errors):
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, errors)
+        if self.com_raw is not None and prefix + "com_raw" in missing_keys:  # (a box saved before it learned its
+            missing_keys.remove(prefix + "com_raw")  # centre of mass: a uniform box, the start, kept)
+            with torch.no_grad():
+                self.com_raw.zero_()
 
     @torch.no_grad()
     def project_(self) -> None:
@@ -227,7 +245,8 @@ class LearnedParams(nn.Module):
 
     @property
     def inertia(self) -> Inertia:
-        return Inertia(masses=self.log_mass.exp(), moments=self.log_moments.exp())
+        com = None if self.com_raw is None else self.com_scale * self.com_raw
+        return Inertia(masses=self.log_mass.exp(), moments=self.log_moments.exp(), com=com)
 
     def forward(self) -> Params:
         return Params(inertia=self.inertia, potential=self.potential, mu=self.mu, e=self.e)

@@ -1,11 +1,12 @@
 """A rigid box tossed onto planes: one 3-D extended body (4 points) whose 8 corners touch the planes.
 
-The body's centre of mass is the box's centre; ``half_extents`` (3,) m give its corners (±a, ±b, ±c) in the body
-frame. Every corner against every plane is a contact candidate (VertexPlanes, 3-D friction cones), one μ and e
-slot per plane. The initial states are tosses: a uniformly random orientation, the centre at a height in
-``init.height`` above the first plane's origin, a horizontal speed in ``init.speed`` in a random direction, a
-vertical speed in ``init.vertical_speed`` and a spin of magnitude in ``init.spin`` about a random axis.
-"""
+The body's first point is the box's centre; its centre of mass is ``centre_of_mass`` (3,) m from it in the body
+frame (default 0: a uniform box), and a learned model learns it. ``half_extents`` (3,) m give its corners (±a, ±b,
+±c) in the body frame, about the box's centre. Every corner against every plane is a contact candidate
+(VertexPlanes, 3-D friction cones), one μ and e slot per plane. The initial states are tosses: a uniformly random
+orientation, the centre at a height in ``init.height`` above the first plane's origin, a horizontal speed in
+``init.speed`` in a random direction, a vertical speed in ``init.vertical_speed`` and a spin of magnitude in
+``init.spin`` about a random axis."""
 
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ from diffcontact.systems.common import (
 from diffcontact.systems.poses import pose_to_points
 
 TABLES = {
-    "body": ("mass", "moments", "half_extents"),
+    "body": ("mass", "moments", "half_extents", "centre_of_mass"),
     "walls": ("planes",),
     "potential": ("gravity",),
     "init": ("height", "speed", "vertical_speed", "spin"),
@@ -52,12 +53,18 @@ def _range(sec, key: str, default: tuple[float, float], lo: float | None = None)
 
 
 def build_box(cfg: TaskConfig) -> Task:
-    """A tossed box from ``[body]`` (mass kg, moments (3,) m² per unit mass, half_extents (3,) m), ``[walls]``
+    """A tossed box from ``[body]`` (mass kg, moments (3,) m² per unit mass about the centre of mass, half_extents
+    (3,) m, centre_of_mass (3,) m from the box's centre, default 0), ``[walls]``
     (planes [n_x, n_y, n_z, c], free where n·y + c >= 0), ``[potential]`` (gravity along −z, m/s²), ``[init]``."""
     body = cfg.section("body")
     mass = body.number("mass", lo=0.0, lo_open=True)
     moments = body.numbers("moments", length=3, lo=0.0, lo_open=True)
     half = torch.tensor(body.numbers("half_extents", length=3, lo=0.0, lo_open=True), dtype=F64)
+    com = torch.tensor(body.numbers("centre_of_mass", length=3) if body.has("centre_of_mass") else [0.0] * 3, dtype=F64)
+    if bool((com.abs() > half).any()):
+        raise ConfigError(
+            f"{body.prefix}.centre_of_mass = {com.tolist()} m lies outside the box (each |value| <= half_extents)"
+        )
     d = 3
     wall_n, wall_c = planes(cfg.section("walls"), "planes", d)
     n_planes = wall_n.shape[0]
@@ -96,7 +103,7 @@ def build_box(cfg: TaskConfig) -> Task:
     )
     g = cfg.section("potential").number("gravity", 9.81, lo=0.0)
     params = Params(
-        Inertia(torch.tensor([mass], dtype=F64), torch.tensor([moments], dtype=F64)),
+        Inertia(torch.tensor([mass], dtype=F64), torch.tensor([moments], dtype=F64), com[None]),
         SumPotential(Gravity(g, torch.tensor([0.0, 0.0, 1.0], dtype=F64), 4)),
         mu,
         e,

@@ -81,9 +81,14 @@ def inertia_spread(system: System, learned: Inertia, true: Inertia, x: torch.Ten
     principal motions; a model equal to the truth up to the scale its potential absorbs has all λ equal.
     Returns {"spread": max over x of λ_max/λ_min − 1, "scale": the median λ}.
     """
+
+    def as_double(i: Inertia) -> Inertia:
+        com = None if i.com is None else i.com.detach().double()
+        return Inertia(i.masses.detach().double(), i.moments.detach().double(), com)
+
     d = system.d
-    M_l = dense(body_blocks(Inertia(learned.masses.detach().double(), learned.moments.detach().double()))[0], d)
-    M_t = dense(body_blocks(Inertia(true.masses.double(), true.moments.double()))[0], d)
+    M_l = dense(body_blocks(as_double(learned))[0], d)
+    M_t = dense(body_blocks(as_double(true))[0], d)
     x = x.to(torch.float64)
     Je = system.constraints.jac(x)  # (B, E, D)
     D = M_t.shape[-1]
@@ -113,7 +118,7 @@ def compare(learned: torch.Tensor, true: torch.Tensor, identifiable: torch.Tenso
 
 
 def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noise: float = 0.0) -> dict:
-    """``{"mu", "e", "mass_ratio"[, "moments"], "inertia", "collisions", "collisions_slipping",
+    """``{"mu", "e", "mass_ratio"[, "moments", "centre_of_mass"], "inertia", "collisions", "collisions_slipping",
     "collisions_bound", "evidence_chunks"}`` of a model ``net`` (its ``params``: LearnedParams) trained on
     ``task``'s chunks ``chunk_x``, ``chunk_v`` (N, L, P, d), recorded with observation noise ``noise`` (0: none).
 
@@ -127,7 +132,8 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noi
     e by collisions whose restitution the bound e·f_c,n sets, or, for a true e of 0, by any collision; homogeneous
     tasks share one value, identifiable if any slot is); mass ratio = mass / mass of the first body; moments
     (extended bodies only): second moments per unit mass in m², body by body and axis by axis (see the module
-    docstring for what of them is identifiable); inertia: ``inertia_spread``, what is.
+    docstring for what of them is identifiable); centre_of_mass (the box): in m, body frame, from its centre;
+    inertia: ``inertia_spread``, what is.
     """
     from diffcontact.models.baselines import Baseline
 
@@ -160,6 +166,8 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noi
     moments = truth.inertia.moments
     if moments.numel():
         out["moments"] = compare(learned.inertia.moments.detach().double().flatten(), moments.double().flatten())
+    if truth.inertia.com is not None and learned.inertia.com is not None:  # (the box: m, body frame, from its centre)
+        out["centre_of_mass"] = compare(learned.inertia.com.detach().double().flatten(), truth.inertia.com.flatten())
     # (at the first frames of up to 64 chunks)
     out["inertia"] = inertia_spread(task.system, learned.inertia, truth.inertia, chunk_x[:64, 0].detach())
     if isinstance(learned.potential, LearnedGravity):
