@@ -218,8 +218,12 @@ class LearnedParams(nn.Module):
                 raise ConfigError('potential = "known" needs the task\'s potential (known_potential)')
             self.potential = known_potential
 
-    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, errors):
-        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, errors)
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
         if self.com_raw is not None and prefix + "com_raw" in missing_keys:  # (a box saved before it learned its
             missing_keys.remove(prefix + "com_raw")  # centre of mass: a uniform box, the start, kept)
             with torch.no_grad():
