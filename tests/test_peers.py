@@ -1,4 +1,5 @@
-"""The MuJoCo and Bullet cube peers: rollout layout, free flight against closed forms, a settling drop, the command.
+"""The MuJoCo and Bullet cube peers: rollout layout, free flight against closed forms, a settling drop, an offset
+centre of mass, the command.
 
 Skipped for an engine (or the optimiser) that is not installed: ``pip install -e '.[peers]'``.
 """
@@ -15,7 +16,7 @@ from diffcontact.data.tosses import CONTACTNETS_DT, Tosses
 from diffcontact.errors import ConfigError
 from diffcontact.eval.pose_metrics import rotation_angle
 from diffcontact.peers import ENGINES, MissingPeerPackageError, load_engine
-from diffcontact.peers.cube import GRAVITY, HALF_EXTENT, SUBSTEPS, nominal
+from diffcontact.peers.cube import COM_NAMES, COM_PARAMETERS, GRAVITY, HALF_EXTENT, SUBSTEPS, nominal
 from diffcontact.systems.poses import box_vertices, rotate
 
 TABLE = -0.00186  # m: the data's table plane, not at z = 0
@@ -23,6 +24,7 @@ SETTLE_TOL = 2e-3  # m: lowest corner of the resting cube from the table
 REST_TOL = 1e-4  # m: how far a resting cube may move over its last frames
 FLIGHT_TOL = 1e-6  # m: free flight against the semi-implicit Euler parabola
 SPIN_TOL = 1e-9  # free rotation's quaternion against the constant angular momentum rotation's (≈ rad / 2)
+COM = np.array([0.004, -0.003, 0.009])  # m: an offset centre of mass (body frame, from the box's centre)
 
 pytestmark = pytest.mark.parametrize("name", list(ENGINES))
 
@@ -104,6 +106,72 @@ def test_cube_dropped_flat_settles_on_the_table(name):
     assert rotation_angle(quaternion[-30:], quaternion[-1:].repeat(30, 0)).max() < REST_TOL / HALF_EXTENT
 
 
+def _com(offset) -> dict[str, float]:
+    return dict(zip(COM_NAMES, map(float, offset)))
+
+
+def test_offset_centre_of_mass_flies_a_parabola(name):
+    """Free flight with the centre of mass c off the box centre: the centre of mass p + R c follows the parabola of
+    its initial state (p0 + R0 c, v0 + R0 (ω × c)), ω constant (isotropic inertia about it); the box centre does not
+    (it circles the centre of mass: 2.9 mm off its own parabola here). Tolerance at time t: both engines' semi-implicit
+    Euler at h = dt / 10 shifts the parabola by ½ g h t (as above), and Bullet integrates the centre of mass itself
+    (FLIGHT_TOL from that shifted parabola). MuJoCo integrates the body frame's origin, the box centre, whose
+    acceleration adds −ω × (ω × R c) to g: its left Riemann sum for the velocity is off by ≤ ½ h t |ω|³ |c|, the right
+    sum of that velocity for the position by ≤ ½ h t |ω|² |c|, together ½ h t |ω|² |c| (1 + |ω| t) (≤ 1.0e-4 m
+    here, 3.4e-5 seen)."""
+    engine = _engine(name)
+    q0 = np.array([0.8, 0.3, -0.4, 0.2]) / np.linalg.norm([0.8, 0.3, -0.4, 0.2])
+    state = _state([0.2, -0.1, 1.0], q0, [0.7, -0.4, 1.5], [8.0, -12.0, 6.0])
+    frames = 10
+    position, quaternion = engine.simulate(_tosses([state], [frames]), nominal(engine.PARAMETERS) | _com(COM), TABLE)
+    t = np.arange(frames)[:, None] * CONTACTNETS_DT
+    h, g, w = CONTACTNETS_DT / SUBSTEPS, np.array([0.0, 0.0, -GRAVITY]), np.linalg.norm(state[10:13])
+    arm, omega_world = rotate(q0[None], np.stack([COM, state[10:13]]))[0]  # R0 c, R0 ω
+    p0, v0 = state[0:3] + arm, state[7:10] + np.cross(omega_world, arm)
+    parabola = p0 + v0 * t + 0.5 * g * t**2
+    origin_error = 0.5 * h * t * w**2 * np.linalg.norm(COM) * (1.0 + w * t) if name == "mujoco" else 0.0 * t
+    tol = 0.5 * GRAVITY * h * t + origin_error + FLIGHT_TOL
+    com = position + rotate(quaternion, COM[None])[:, 0]
+    assert (np.linalg.norm(com - parabola, axis=1, keepdims=True) <= tol).all()
+    euler, euler_tol = parabola + 0.5 * g * t * h, origin_error + FLIGHT_TOL  # (the integrators' own parabola)
+    assert (np.linalg.norm(com - euler, axis=1, keepdims=True) <= euler_tol).all()
+    centre_euler = state[0:3] + state[7:10] * t + 0.5 * g * t * (t + h)  # (where an ignored offset would put it)
+    assert np.linalg.norm(position - centre_euler, axis=1).max() > 10 * euler_tol.max()
+    expected = _quat_mul(_quat_exp(omega_world * t), np.repeat(q0[None], frames, 0))
+    sign = np.sign((quaternion * expected).sum(1, keepdims=True))
+    np.testing.assert_allclose(quaternion, sign * expected, rtol=0, atol=SPIN_TOL)
+
+
+def test_offset_centre_of_mass_rests_on_a_face(name):
+    """A cube standing still on its −z face with its centre of mass off the centre (inside the face's footprint)
+    stays where it is: its box centre at the table's height plus a half-extent (to the engines' contact give) and
+    its rotation unchanged. A box placed around the centre of mass, or the centre read back as the centre of mass,
+    would be off by c (≥ 3 mm)."""
+    engine = _engine(name)
+    still = _state([0.05, -0.02, TABLE + HALF_EXTENT], [1, 0, 0, 0], [0, 0, 0], [0, 0, 0])
+    frames = 148  # 1 s
+    position, quaternion = engine.simulate(_tosses([still], [frames]), nominal(engine.PARAMETERS) | _com(COM), TABLE)
+    assert np.abs(position - still[0:3]).max() < REST_TOL
+    assert rotation_angle(quaternion, np.repeat(still[None, 3:7], frames, 0)).max() < REST_TOL / HALF_EXTENT
+    assert np.abs(position[-30:] - position[-1]).max() < REST_TOL
+
+
+def test_zero_centre_of_mass_offset_changes_nothing(name):
+    """com_x, com_y, com_z = 0 roll out exactly as without them (the engines add exact zeros), in flight and in
+    contact; they are checked like the others."""
+    engine = _engine(name)
+    states = [_state([0.1, 0.0, 0.15], [1, 0.2, -0.1, 0.3], [0.5, -0.2, -1.0], [2.0, -1.0, 4.0]),
+              _state([-0.3, 0.2, 0.08], [0.9, 0.0, 0.4, 0.0], [-0.3, 0.4, 0.0], [0.0, 3.0, 0.0])]  # fmt: skip
+    tosses, params = _tosses(states, [40, 25]), nominal(engine.PARAMETERS)
+    without, zero = engine.simulate(tosses, params, TABLE), engine.simulate(tosses, params | _com([0, 0, 0]), TABLE)
+    for a, b in zip(without, zero):
+        np.testing.assert_array_equal(a, b)
+    assert (without[0][:, 2] - TABLE < HALF_EXTENT * 1.5).any()  # (it met the table)
+    assert [p.nominal for p in COM_PARAMETERS] == [0.0] * 3
+    with pytest.raises(ConfigError, match=f"{name}: com_z = 0.05 is not in"):
+        engine.simulate(tosses, params | {"com_z": 0.05}, TABLE)
+
+
 def _npz(path, n: int = 10, length: int = 12) -> None:
     """A tiny tosses .npz in the ContactNets layout (frames in half-widths, ω in rad/s)."""
     rng = np.random.default_rng(3)
@@ -140,7 +208,8 @@ def test_fit_command_writes_its_files(name, tmp_path):
         assert z["position"].shape == (24, 3) and z["quaternion"].shape == (24, 4)
         assert z["toss_id"].tolist() == metrics["test_toss_id"] and z["offsets"].tolist() == [0, 12, 24]
     full = CliRunner().invoke(
-        app, [*args[:4], "--out", str(tmp_path / "all"), *args[6:], "--seed", "1", "--twist", "poses"]
+        app,
+        [*args[:4], "--out", str(tmp_path / "all"), *args[6:], "--seed", "1", "--twist", "poses", "--centre-of-mass"],
     )
     assert full.exit_code == 0, full.output
     all_metrics = json.loads((tmp_path / "all" / "metrics.json").read_text())
@@ -148,6 +217,12 @@ def test_fit_command_writes_its_files(name, tmp_path):
     assert all_metrics["test_toss_id"] == metrics["test_toss_id"]  # (the same seed, the same test tosses)
     assert set(fitted["train_toss_id"]) < set(all_fitted["train_toss_id"]) and all_fitted["train_tosses"] == 6
     assert fitted["initial_twist"] == "fitted" and all_fitted["initial_twist"] == "poses"
+    assert not fitted["centre_of_mass"] and not metrics["centre_of_mass"]  # (the default: the box centre)
+    assert all_fitted["centre_of_mass"] and all_metrics["centre_of_mass"]  # (--centre-of-mass: com_* fitted too)
+    assert set(fitted["bounds"]) == set(fitted["parameters"])
+    assert set(all_fitted["parameters"]) == set(all_fitted["bounds"]) == set(fitted["parameters"]) | set(COM_NAMES)
+    assert all(abs(all_fitted["parameters"][n]) <= 0.02 for n in COM_NAMES)
+    assert all_fitted["nominal_parameters"] == fitted["nominal_parameters"]  # (nominal: no offset)
     bad = CliRunner().invoke(app, [*args, "--train-tosses", "7"])  # (the training split holds 6)
     assert bad.exit_code == 2 and "train_tosses = 7 is not in [1, 6]" in bad.output
     bad = CliRunner().invoke(app, [*args, "--twist", "filtered"])

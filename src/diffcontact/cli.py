@@ -628,6 +628,12 @@ def peers_fit(
         help="Initial state: fitted (a free-flight fit, the one our models start from), recorded (the source's "
         "twist) or poses (one-sided differences of the poses).",
     ),
+    centre_of_mass: bool = typer.Option(
+        False,
+        "--centre-of-mass/--no-centre-of-mass",
+        help="Also fit the centre of mass's offset from the box centre (com_x, com_y, com_z: body frame, ±2 cm, "
+        "from 0); without it the centre of mass is the box centre.",
+    ),
 ) -> None:
     """Fit an engine's contact parameters to the training tosses (CMA-ES); score it and its nominal parameters on
     the test tosses."""
@@ -635,7 +641,8 @@ def peers_fit(
 
     with _user_errors():
         m = run_fit(engine, source, out, seed=seed, split=split, train_tosses=train_tosses,
-                    budget=budget or DEFAULT_BUDGET, twist=twist, echo=typer.echo)  # fmt: skip
+                    budget=budget or DEFAULT_BUDGET, twist=twist, echo=typer.echo,
+                    centre_of_mass=centre_of_mass)  # fmt: skip
     for name in ("fitted", "nominal"):
         r = {k: float("nan") for k in ("position_error_pct", "rotation_error_deg", "penetration_pct")} | m[name]
         typer.echo(f"{engine} {name}: position {r['position_error_pct']:.2f} %, rotation "

@@ -9,6 +9,15 @@ Bullet combines two bodies' values as: friction and restitution the product, sti
 The table gets friction 1 and restitution 1, and each body half the damping and twice the stiffness, so that the
 contact has exactly the fitted values. Without ``contact_stiffness`` and ``contact_damping`` (the nominal model)
 the contact is Bullet's default rigid one (ERP / CFM). Angular velocity is set in the table frame (ω body → R ω).
+
+The centre of mass c (com_x, com_y, com_z, body frame, 0 when absent) is the base's inertial frame
+(``baseInertialFramePosition``; mass and inertia about it), the box centred on the base's link frame. Bullet's base
+state is the inertial frame's: ``resetBaseVelocity`` sets the centre of mass's velocity, and
+``getBasePositionAndOrientation`` gives its position (``createMultiBody``'s ``basePosition`` is the link frame's). So a
+cube starts from v_centre + R (ω × c) and its box centre is read back as p − R c. (Checked numerically, pybullet
+3.2.7, maximal coordinates: at creation the read position is basePosition + R c; spinning without gravity, it moves
+at the set velocity on a straight line while the box's AABB centre stays at it − R c, to 1e-15 m, also after a
+reset.) With c = 0 the arithmetic adds exact zeros: the rollouts are the same to the bit.
 """
 
 from __future__ import annotations
@@ -19,6 +28,8 @@ import pybullet as pb  # pyright: ignore[reportMissingImports]  (an optional ext
 from diffcontact.data.tosses import Tosses
 from diffcontact.errors import ConfigError
 from diffcontact.peers.cube import (
+    COM_NAMES,
+    COM_PARAMETERS,
     GRAVITY,
     HALF_EXTENT,
     INERTIA,
@@ -28,6 +39,7 @@ from diffcontact.peers.cube import (
     SUBSTEPS,
     Param,
     check_params,
+    com_offset,
     roll_out_groups,
 )
 from diffcontact.systems.poses import rotate
@@ -66,12 +78,16 @@ def _compliance(params: dict[str, float]) -> dict[str, float]:
 def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> tuple[np.ndarray, np.ndarray]:
     """Each toss rolled out from its first recorded frame for its length: position (F, 3) m, quaternion (F, 4)
     w, x, y, z, one row per recorded frame (frame 0 the recorded one). params: friction and restitution, and
-    contact_stiffness (N/m) with contact_damping (N s/m) or neither; table_height: the table plane's z in m."""
-    check_params(params, PARAMETERS, ENGINE, optional=COMPLIANT)
+    contact_stiffness (N/m) with contact_damping (N s/m) or neither, and the names of ``cube.COM_PARAMETERS`` (m),
+    each 0 when absent; table_height: the table plane's z in m."""
+    check_params(params, PARAMETERS + COM_PARAMETERS, ENGINE, optional=COMPLIANT + COM_NAMES)
     if sum(name in params for name in COMPLIANT) == 1:
         raise ConfigError(f"{ENGINE}: give {' and '.join(COMPLIANT)} together, or neither (rigid contact)")
     start = tosses.offsets[:-1]
+    com = com_offset(params)
     omega_world = np.stack([rotate(tosses.quaternion[f : f + 1], tosses.omega[f : f + 1])[0, 0] for f in start])
+    com_world = np.stack([rotate(tosses.quaternion[f : f + 1], com[None])[0, 0] for f in start])  # R c
+    com_velocity = tosses.velocity[start] + np.cross(omega_world, com_world)  # v_centre + R (ω × c)
 
     def run_group(index: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
         side, cell = int(np.ceil(np.sqrt(len(index)))), np.arange(len(index))
@@ -85,14 +101,14 @@ def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> t
                 w, x, y, z = tosses.quaternion[f]
                 b = pb.createMultiBody(
                     MASS, box, basePosition=tosses.position[f] + shift[j], baseOrientation=[x, y, z, w],
-                    useMaximalCoordinates=True, physicsClientId=c,
+                    baseInertialFramePosition=com, useMaximalCoordinates=True, physicsClientId=c,
                 )  # fmt: skip
                 pb.changeDynamics(
                     b, -1, mass=MASS, localInertiaDiagonal=[INERTIA] * 3, lateralFriction=params["friction"],
                     restitution=params["restitution"], linearDamping=0.0, angularDamping=0.0,
                     activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING, **_compliance(params), physicsClientId=c,
                 )  # fmt: skip
-                pb.resetBaseVelocity(b, tosses.velocity[f], omega_world[i], physicsClientId=c)
+                pb.resetBaseVelocity(b, com_velocity[i], omega_world[i], physicsClientId=c)
                 pb.setCollisionFilterGroupMask(b, -1, CUBE, TABLE, physicsClientId=c)
                 bodies.append(b)
             position = np.empty((len(index), frames, 3))
@@ -105,6 +121,7 @@ def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> t
                     position[j, k], quaternion[j, k] = p, (w, x, y, z)
         finally:
             pb.disconnect(c)
-        return position - shift[:, None], quaternion
+        centre = position - rotate(quaternion.reshape(-1, 4), com[None]).reshape(position.shape)  # p − R c
+        return centre - shift[:, None], quaternion
 
     return roll_out_groups(tosses, run_group)

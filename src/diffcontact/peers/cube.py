@@ -1,7 +1,9 @@
 """What the two engine peers share: the nominal cube, the fitted parameters' bounds, and rolling tosses out in groups.
 
 The cube is the ContactNets one at its nominal values (Pfrommer et al., CoRL 2020, ``experiment.json``): half-extent
-0.0524 m, mass 0.37 kg, isotropic inertia 0.00081 kg m², gravity 9.81 m/s² along −z of the table frame.
+0.0524 m, mass 0.37 kg, isotropic inertia 0.00081 kg m², gravity 9.81 m/s² along −z of the table frame. Its centre of
+mass may sit off the box's centre (``COM_PARAMETERS``, optional in every engine: 0 when absent); the box stays where
+it is, and the mass and the inertia are about the centre of mass. The poses in and out are the box centre's.
 """
 
 from __future__ import annotations
@@ -55,6 +57,17 @@ class Param:
     def start(self) -> float:
         """The search's starting fraction: the nominal value, or the middle of the range without one."""
         return 0.5 if self.nominal is None else self.fraction(self.nominal)
+
+
+# the centre of mass's offset from the box's centre, in the body frame: com_x, com_y, com_z
+COM_PARAMETERS = tuple(Param(f"com_{axis}", -0.02, 0.02, log=False, nominal=0.0, unit="m") for axis in "xyz")
+COM_NAMES = tuple(p.name for p in COM_PARAMETERS)
+
+
+def com_offset(params: dict[str, float]) -> np.ndarray:
+    """The centre of mass (3,) in m, body frame, from the box's centre: ``params``' com_x, com_y, com_z (each 0
+    if absent)."""
+    return np.array([float(params.get(name, 0.0)) for name in COM_NAMES])
 
 
 def nominal(params: tuple[Param, ...]) -> dict[str, float]:

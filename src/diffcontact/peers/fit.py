@@ -1,9 +1,11 @@
 """Fit an engine's contact parameters to the training tosses with CMA-ES, then score it on the test tosses.
 
-Optimiser: CMA-ES (the ``cma`` package): the standard derivative-free method for a handful (4-6) of continuous
+Optimiser: CMA-ES (the ``cma`` package): the standard derivative-free method for a handful (4-9) of continuous
 parameters, robust to the rough, discontinuous landscape that contacts give; one small dependency (numpy only) and
 seeded. It searches the fraction u in [0, 1] of each parameter's range (a log range for scale parameters,
 ``cube.Param``), from the nominal values (the middle of the range for a parameter without one), with step 0.25.
+The fitted set is the engine's ``PARAMETERS``, with ``run_fit(centre_of_mass=True)`` also the centre of mass's
+offset from the box centre (``cube.COM_PARAMETERS``: com_x, com_y, com_z in m, body frame, from 0).
 
 Objective (minimised, in % of the cube's width): position_error_pct + ROTATION_WEIGHT · rotation_error_deg on the
 training tosses (all of them at every evaluation), from the same ``box_toss_metrics`` as the test. ROTATION_WEIGHT
@@ -29,7 +31,7 @@ from diffcontact.errors import ConfigError
 from diffcontact.eval.pose_metrics import box_toss_metrics
 from diffcontact.files import save_arrays, versions, write_json
 from diffcontact.peers import ENGINES, load_engine, require
-from diffcontact.peers.cube import GRAVITY, HALF_EXTENT, INERTIA, MASS, SUBSTEPS, Param, nominal
+from diffcontact.peers.cube import COM_PARAMETERS, GRAVITY, HALF_EXTENT, INERTIA, MASS, SUBSTEPS, Param, nominal
 from diffcontact.run_dir import METRICS, PREDICTIONS
 
 ROTATION_WEIGHT = 50.0 * math.pi / 180.0  # % of the width per degree
@@ -67,12 +69,13 @@ def fit_parameters(
     seed: int,
     echo: Callable[[str], None] = print,
     starts: Tosses | None = None,
+    space: tuple[Param, ...] | None = None,
 ) -> dict:
-    """CMA-ES over ``engine.PARAMETERS`` on ``tosses`` (rolled out from the first frames of ``starts``, or of
-    ``tosses``): whole generations while they fit in ``budget`` evaluations (at least one); returns the best
-    parameters, their metrics and the optimiser's history."""
+    """CMA-ES over ``space`` (default ``engine.PARAMETERS``) on ``tosses`` (rolled out from the first frames of
+    ``starts``, or of ``tosses``): whole generations while they fit in ``budget`` evaluations (at least one); returns
+    the best parameters, their metrics and the optimiser's history."""
     cma = require("cma")
-    space: tuple[Param, ...] = engine.PARAMETERS
+    space = engine.PARAMETERS if space is None else space
     popsize = min(4 + int(3 * math.log(len(space))), budget)  # (CMA-ES's default, or the whole budget if smaller)
     opts = {"bounds": [0.0, 1.0], "seed": seed + 1, "popsize": popsize}  # (cma's seed 0 would be the clock)
     es = cma.CMAEvolutionStrategy([p.start() for p in space], SIGMA0, opts | {"verbose": -9, "verb_log": 0})
@@ -134,6 +137,7 @@ def run_fit(
     budget: int = DEFAULT_BUDGET,
     twist: str = "fitted",
     echo: Callable[[str], None] = print,
+    centre_of_mass: bool = False,
 ) -> dict:
     """Fit ``engine_name`` (mujoco or bullet) on the training tosses of ``source`` (``read_tosses``; split by
     ``split_tosses(n, split, seed)``; with ``train_tosses`` N, the first N of the training split in a seeded
@@ -141,7 +145,8 @@ def run_fit(
     and OUT/predictions.npz (the fitted model's test rollouts). ``twist``: the initial state of each rollout,
     the one our models start from (``fitted``: ``data.measured.first_states``, a free-flight fit), the recorded
     pose with the source's twist (``recorded``: backward differences, median-filtered) or with the one-sided
-    differences of the poses (``poses``). Returns the metrics."""
+    differences of the poses (``poses``). ``centre_of_mass``: also fit the centre of mass's offset from the box
+    centre (com_x, com_y, com_z, from 0; without it the centre of mass is the box centre). Returns the metrics."""
     _check_request(split, seed, budget, twist)
     engine = load_engine(engine_name)
     tosses = read_tosses(source)
@@ -158,10 +163,12 @@ def run_fit(
     train_starts = test_starts = None
     if twist == "fitted":
         train_starts, test_starts = (with_first_states(t, table_height, [HALF_EXTENT] * 3) for t in (train, test))
+    space: tuple[Param, ...] = engine.PARAMETERS + (COM_PARAMETERS if centre_of_mass else ())
     echo(f"{engine_name}: {train.n} training tosses ({len(train.position)} frames), {test.n} test tosses, "
-         f"table at z = {table_height * 1000:.3f} mm, budget {budget}, load {os.getloadavg()[0]:.2f}")  # fmt: skip
+         f"table at z = {table_height * 1000:.3f} mm, budget {budget}, {len(space)} parameters, load "
+         f"{os.getloadavg()[0]:.2f}")  # fmt: skip
     load_before = os.getloadavg()
-    fit = fit_parameters(engine, train, table_height, budget, seed, echo, train_starts)
+    fit = fit_parameters(engine, train, table_height, budget, seed, echo, train_starts, space)
     start = nominal(engine.PARAMETERS)
     position, quaternion = engine.simulate(test_starts or test, fit["params"], table_height)
     metrics = {
@@ -176,6 +183,7 @@ def run_fit(
         "rotation_weight": ROTATION_WEIGHT,
         "seed": seed,
         "initial_twist": twist,
+        "centre_of_mass": centre_of_mass,
         "test_toss_id": test.toss_id.tolist(),
     }
     out = Path(out)
@@ -184,7 +192,7 @@ def run_fit(
         "engine": engine_name,
         "parameters": fit["params"],
         "nominal_parameters": start,
-        "bounds": {p.name: {"low": p.low, "high": p.high, "log": p.log, "unit": p.unit} for p in engine.PARAMETERS},
+        "bounds": {p.name: {"low": p.low, "high": p.high, "log": p.log, "unit": p.unit} for p in space},
         "train_metrics": fit["train_metrics"],
         "train_metrics_nominal": score(engine, train, start, table_height, train_starts),
         "optimiser": fit["optimiser"],
@@ -193,6 +201,7 @@ def run_fit(
         "train_tosses": train.n,
         "train_toss_id": train.toss_id.tolist(),
         "initial_twist": twist,
+        "centre_of_mass": centre_of_mass,  # (fitted: com_x, com_y, com_z in parameters; else the box centre)
         "cube": {"half_extent_m": HALF_EXTENT, "mass_kg": MASS, "inertia_kg_m2": INERTIA, "gravity_m_s2": GRAVITY},
         "timestep_s": tosses.dt / SUBSTEPS,
         "substeps": SUBSTEPS,

@@ -5,8 +5,13 @@ cones, Newton solver). The contact parameters are set on both geoms alike, so Mu
 (friction: the larger; solref, solimp: averaged) returns them unchanged. solimp's midpoint and power keep their
 defaults (0.5, 2); torsional and rolling friction theirs (0.005, 0.0001).
 
-The free joint's state is qpos = (centre in the table frame, quaternion w, x, y, z) and qvel = (centre velocity in
-the table frame, angular velocity in the BODY frame): the tosses' ω (body frame) goes in as it is.
+The body's frame is the box's: its origin the box centre, the centre of mass offset from it (com_x, com_y, com_z,
+0 when absent) as the body's inertial frame (``<inertial pos>``; mass and inertia about it). The free joint's state
+is that of the body frame's origin whatever the inertial frame: qpos = (box centre in the table frame, quaternion w,
+x, y, z) and qvel = (box centre velocity in the table frame, angular velocity in the BODY frame), so the tosses'
+states go in and the poses come out as they are. (Checked numerically, MuJoCo 4.0: with an offset c, data.xpos is
+qpos[0:3] and data.xipos is xpos + R c; mj_objectVelocity gives qvel[0:3] for the body frame and qvel[0:3] + (R ω) ×
+(R c) for the inertial frame.)
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from mujoco import MjData, MjModel, mj_getState, mj_resetData, mj_stateSize, mjt
 
 from diffcontact.data.tosses import Tosses
 from diffcontact.peers.cube import (
+    COM_NAMES,
+    COM_PARAMETERS,
     GRAVITY,
     HALF_EXTENT,
     INERTIA,
@@ -29,6 +36,7 @@ from diffcontact.peers.cube import (
     SUBSTEPS,
     Param,
     check_params,
+    com_offset,
     roll_out_groups,
 )
 
@@ -47,13 +55,14 @@ _STATE = mjtState.mjSTATE_FULLPHYSICS  # time, qpos (7), qvel (6): columns 1-3 c
 
 def _model(table_height: float, dt: float, params: dict[str, float]) -> MjModel:
     h, inertia = HALF_EXTENT, INERTIA
+    cx, cy, cz = (float(c) for c in com_offset(params))  # (float: numpy's repr is not MJCF)
     xml = f"""<mujoco>
   <option timestep="{dt / SUBSTEPS!r}" gravity="0 0 {-GRAVITY!r}"/>
   <worldbody>
     <geom name="table" type="plane" size="0 0 1" pos="0 0 {table_height!r}"/>
     <body name="cube">
       <freejoint/>
-      <inertial pos="0 0 0" mass="{MASS!r}" diaginertia="{inertia!r} {inertia!r} {inertia!r}"/>
+      <inertial pos="{cx!r} {cy!r} {cz!r}" mass="{MASS!r}" diaginertia="{inertia!r} {inertia!r} {inertia!r}"/>
       <geom name="cube" type="box" size="{h!r} {h!r} {h!r}"/>
     </body>
   </worldbody>
@@ -68,8 +77,8 @@ def _model(table_height: float, dt: float, params: dict[str, float]) -> MjModel:
 def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> tuple[np.ndarray, np.ndarray]:
     """Each toss rolled out from its first recorded frame for its length: position (F, 3) m, quaternion (F, 4)
     w, x, y, z, one row per recorded frame (frame 0 the recorded one). params: the names of ``PARAMETERS``, all
-    given; table_height: the table plane's z in m."""
-    check_params(params, PARAMETERS, ENGINE)
+    given, and of ``cube.COM_PARAMETERS`` (m), each 0 when absent; table_height: the table plane's z in m."""
+    check_params(params, PARAMETERS + COM_PARAMETERS, ENGINE, optional=COM_NAMES)
     model = _model(table_height, tosses.dt, params)
     data = MjData(model)
     size = mj_stateSize(model, _STATE)
