@@ -1,9 +1,11 @@
 """The real-data pipeline closed on simulated tosses: Cube tosses recorded as the ContactNets files are (noise and
-velocity columns like theirs), imported, trained briefly; the learned μ and e come back."""
+velocity columns like theirs), imported, trained briefly; the learned μ and e come back, and so does a centre of mass
+off the box's centre."""
 
 from __future__ import annotations
 
 import json
+from importlib import resources
 
 import pytest
 
@@ -13,21 +15,31 @@ from diffcontact.data.tosses import save_contactnets_npz, simulated_tosses
 from diffcontact.train.run import train_run
 
 RECOVERED = 0.02  # |learned − true| of μ and e
+COM_RECOVERED = 1.5e-3  # m, each axis of the centre of mass
 
 
 @pytest.mark.slow
-def test_cube_tosses_recorded_imported_and_learned(tmp_path):
-    task = build_task("Cube")
+@pytest.mark.parametrize("com", [None, [0.0, 0.0, 0.009]])
+def test_cube_tosses_recorded_imported_and_learned(tmp_path, com):
+    task_file: str = "Cube"
+    if com is not None:  # (the Cube with its mass 9 mm toward a face, as the real cube's: docs/real_data.md)
+        text = resources.files("diffcontact.tasks").joinpath("Cube.toml").read_text()
+        task_file = str(tmp_path / "Cube.toml")
+        (tmp_path / "Cube.toml").write_text(text.replace("[body]\n", f"[body]\ncentre_of_mass = {com}\n"))
+    task = build_task(task_file)
     tosses = simulated_tosses(task, 16, seed=5, frames=60)
     save_contactnets_npz(tmp_path / "tosses.npz", tosses)
     # (short windows: many optimiser steps in a short test; the real tosses train on whole-toss windows. 20 epochs
     # (80 steps) recover μ and e to 0.002 at seed 5; 14 epochs leave e 0.09 off)
     folder = tmp_path / "data" / "Cube"
-    import_tosses(tmp_path / "tosses.npz", folder, task="Cube", split=(0.75, 0.125, 0.125), window=8, stride=8)
+    import_tosses(tmp_path / "tosses.npz", folder, task=task_file, split=(0.75, 0.125, 0.125), window=8, stride=8)
     summary = train_run(
-        "Cube", data_root=tmp_path / "data", out=tmp_path / "run", epochs=20, batch_size=25, coef_lr=1.0,
+        task_file, data_root=tmp_path / "data", out=tmp_path / "run", epochs=20, batch_size=25, coef_lr=1.0,
         progress=False,
     )  # fmt: skip
+    learned_com = summary["centre_of_mass"]["learned"]
+    for got, true in zip(learned_com, com or [0.0] * 3):
+        assert abs(got - true) <= COM_RECOVERED, summary["centre_of_mass"]
     learned = json.loads((tmp_path / "run" / "learned.json").read_text())
     assert learned["mu"]["identifiable"] == [True] and learned["e"]["identifiable"] == [True]
     assert abs(summary["mu"]["learned"][0] - 0.18) <= RECOVERED, summary["mu"]

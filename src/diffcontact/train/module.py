@@ -328,6 +328,10 @@ class ContactLightningModule(pl.LightningModule):
         if p is not None:
             for i, r in enumerate(self.mass_ratio().tolist()):
                 self.log(f"learned/mass_ratio_{i}", r, sync_dist=True)
+            com = p.inertia.com  # (m, body frame: the box's)
+            for i, body in enumerate([] if com is None else com.detach().tolist()):
+                for axis, value in zip("xyz", body):
+                    self.log(f"learned/centre_of_mass_{i}_{axis}", value, sync_dist=True)
 
     def mass_ratio(self) -> torch.Tensor:
         """Learned masses divided by the first body's: (n_bodies,)."""
