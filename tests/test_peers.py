@@ -201,7 +201,7 @@ def test_fit_command_writes_its_files(name, tmp_path):
     fitted = json.loads((out / "fitted.json").read_text())
     metrics = json.loads((out / "metrics.json").read_text())
     assert fitted["train_tosses"] == 3 and fitted["optimiser"]["evaluations"] == 2 and fitted["seed"] == 1
-    assert set(fitted["parameters"]) == {p.name for p in load_engine(name).PARAMETERS}
+    assert set(fitted["parameters"]) == {p.name for p in load_engine(name).PARAMETERS} | set(COM_NAMES)
     for key in ("fitted", "nominal"):
         assert metrics[key]["tosses"] == 2 and np.isfinite(metrics[key]["position_error_pct"])
     with np.load(out / "predictions.npz") as z:
@@ -209,7 +209,8 @@ def test_fit_command_writes_its_files(name, tmp_path):
         assert z["toss_id"].tolist() == metrics["test_toss_id"] and z["offsets"].tolist() == [0, 12, 24]
     full = CliRunner().invoke(
         app,
-        [*args[:4], "--out", str(tmp_path / "all"), *args[6:], "--seed", "1", "--twist", "poses", "--centre-of-mass"],
+        [*args[:4], "--out", str(tmp_path / "all"), *args[6:], "--seed", "1", "--twist", "poses"]
+        + ["--no-centre-of-mass"],
     )
     assert full.exit_code == 0, full.output
     all_metrics = json.loads((tmp_path / "all" / "metrics.json").read_text())
@@ -217,11 +218,11 @@ def test_fit_command_writes_its_files(name, tmp_path):
     assert all_metrics["test_toss_id"] == metrics["test_toss_id"]  # (the same seed, the same test tosses)
     assert set(fitted["train_toss_id"]) < set(all_fitted["train_toss_id"]) and all_fitted["train_tosses"] == 6
     assert fitted["initial_twist"] == "fitted" and all_fitted["initial_twist"] == "poses"
-    assert not fitted["centre_of_mass"] and not metrics["centre_of_mass"]  # (the default: the box centre)
-    assert all_fitted["centre_of_mass"] and all_metrics["centre_of_mass"]  # (--centre-of-mass: com_* fitted too)
-    assert set(fitted["bounds"]) == set(fitted["parameters"])
-    assert set(all_fitted["parameters"]) == set(all_fitted["bounds"]) == set(fitted["parameters"]) | set(COM_NAMES)
-    assert all(abs(all_fitted["parameters"][n]) <= 0.02 for n in COM_NAMES)
+    assert fitted["centre_of_mass"] and metrics["centre_of_mass"]  # (the default: com_* fitted too)
+    assert not all_fitted["centre_of_mass"] and not all_metrics["centre_of_mass"]  # (--no-centre-of-mass)
+    assert set(all_fitted["bounds"]) == set(all_fitted["parameters"])
+    assert set(fitted["parameters"]) == set(fitted["bounds"]) == set(all_fitted["parameters"]) | set(COM_NAMES)
+    assert all(abs(fitted["parameters"][n]) <= 0.02 for n in COM_NAMES)
     assert all_fitted["nominal_parameters"] == fitted["nominal_parameters"]  # (nominal: no offset)
     bad = CliRunner().invoke(app, [*args, "--train-tosses", "7"])  # (the training split holds 6)
     assert bad.exit_code == 2 and "train_tosses = 7 is not in [1, 6]" in bad.output

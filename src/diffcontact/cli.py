@@ -629,10 +629,10 @@ def peers_fit(
         "twist) or poses (one-sided differences of the poses).",
     ),
     centre_of_mass: bool = typer.Option(
-        False,
+        True,
         "--centre-of-mass/--no-centre-of-mass",
         help="Also fit the centre of mass's offset from the box centre (com_x, com_y, com_z: body frame, ±2 cm, "
-        "from 0); without it the centre of mass is the box centre.",
+        "from 0), as our models learn it; --no-centre-of-mass keeps it at the box centre.",
     ),
 ) -> None:
     """Fit an engine's contact parameters to the training tosses (CMA-ES); score it and its nominal parameters on
