@@ -59,15 +59,11 @@ def inverse_factor_blocks(inertia: Inertia) -> torch.Tensor:
     return torch.cat([ones, spread], dim=-1) * m.rsqrt()[:, None, None]
 
 
-def centre_weights(inertia: Inertia, points_per_body: int) -> torch.Tensor:
-    """The mass each point carries for a uniform field (gravity): (n_bodies, points_per_body) in kg, m u with u the
-    centre of mass's weights on the body's points (all on the first point without ``com``)."""
-    m = inertia.masses
-    if inertia.com is None:
-        w = torch.zeros(m.shape[0], points_per_body, dtype=m.dtype, device=m.device)
-        return torch.cat([m[:, None], w[:, 1:]], dim=-1)
-    com = inertia.com.to(m)
-    return m[:, None] * torch.cat([1.0 - com.sum(-1, keepdim=True), com], dim=-1)
+def centre_weights(masses: torch.Tensor, com: torch.Tensor) -> torch.Tensor:
+    """The mass each point carries for a uniform field (gravity): (n_bodies, k+1) in kg, m u with u = (1 − Σδ, δ)
+    the weights of the centre of mass ``com`` δ (n_bodies, k) on the body's points; masses (n_bodies,) in kg."""
+    com = com.to(masses)
+    return masses[:, None] * torch.cat([1.0 - com.sum(-1, keepdim=True), com], dim=-1)
 
 
 def apply_blocks(blocks: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

@@ -29,11 +29,11 @@ def gradient_force(potential, x: torch.Tensor, inertia: Inertia) -> torch.Tensor
 
 def field_energy(g: torch.Tensor | float, up: torch.Tensor, stride: int, x: torch.Tensor, inertia: Inertia):
     """V = g Σ_b m_b (z_b · up) (B,), z_b each body's centre of mass: on its first point (of ``stride``) without
-    ``inertia.com``, else the affine combination of its points that ``com`` gives (``inertia.centre_weights``)."""
+    ``inertia.com``, else the affine combination of its points that ``com`` gives (``centre_weights``)."""
     height = x @ up.to(x)  # (B, P)
     if inertia.com is None:
         return g * (height[:, ::stride] * inertia.masses.to(x)).sum(-1)
-    w = centre_weights(inertia, stride).to(x).flatten()  # (P,)
+    w = centre_weights(inertia.masses, inertia.com).to(x).flatten()  # (P,)
     return g * (height * w).sum(-1)
 
 
@@ -42,7 +42,7 @@ def centre_force(g: torch.Tensor | float, up: torch.Tensor, stride: int, x: torc
     nothing on the other points; with ``inertia.com``, −g w up on each point, w its share of the mass."""
     B, P, d = x.shape
     if inertia.com is not None:
-        w = centre_weights(inertia, stride).to(x).reshape(P, 1)
+        w = centre_weights(inertia.masses, inertia.com).to(x).reshape(P, 1)
         return (-g * w * up.to(x)).expand(B, -1, -1)
     pull = (-g * inertia.masses.to(x)[:, None] * up.to(x)).expand(B, -1, -1)  # (B, n_bodies, d)
     if stride == 1:
