@@ -285,3 +285,52 @@ def test_a_start_far_below_the_solution_is_not_taken_for_a_stall():
     assert info.status.tolist() == [Status.CONVERGED]
     ref, _ = clarabel_solve(A[0], q[0], mu[0], lower[0], 1)
     assert np.abs(f[0].numpy() - ref).max() <= TOL_F * max(1.0, np.abs(ref).max())
+
+
+def test_a_minimiser_on_the_edge_where_a_lower_bound_cuts_the_cone_is_polished_longer():
+    """A restitution problem of the real cube with a learned e of 3e-7 (two corners of an edge, A singular): the
+    first contact's minimiser sits where its lower bound e·f_n (8e-9, 1e-4 of the answer's size) meets its cone.
+    The method stalls near 3e-7 and the usual polishing ends there (MAX_ITER, zero impulses); the last attempt's
+    longer polishing reaches rounding, and the answer is Clarabel's."""
+    from solver_oracle import clarabel_solve
+
+    from diffcontact.solver import solve_cone_qp
+    from diffcontact.solver.problem import POLISH_STEPS
+
+    data = np.load(Path(__file__).parent / "data" / "lower_bound_edge.npz")
+    A, q, mu, lower, active = (data[k][None] for k in ("A", "q", "mu", "lower", "active"))
+    A_s, c, l_hat, T, *_, on_q, on_l, _ = scaling.scale_batch(A, q, mu, lower, active, contact_dims(3))
+    options = dict(acceptable_tol=1e-7, max_iter=60, start_margin=START_MARGIN, refine_tol=IPM_TOL)
+    usual = kernel.solve(A_s, T, c, l_hat, on_q, on_l, 3, ipm_tol=IPM_TOL, final_tol=1e-13, **options,
+                         polish_steps=POLISH_STEPS)  # fmt: skip
+    assert usual.status.tolist() == [Status.MAX_ITER]  # (the case the last attempt is for)
+    given = [torch.from_numpy(a) for a in (A, q, mu, lower, active)]
+    f, info = solve_cone_qp(*given, return_info=True)
+    assert info.status.tolist() == [Status.CONVERGED]
+    # (compared at the answer's own size: f = s·g with g of size 1, whose problem has q/s and lower/s; Clarabel's
+    # absolute tolerances on the problem as given, whose answer is 4e-5, put its first normal impulse 1.8e-6 off)
+    s = 1e-4
+    g, A0, q0, mu0, lower0 = f[0].numpy() / s, A[0], q[0] / s, mu[0], lower[0] / s
+    ref, obj = clarabel_solve(A0, q0, mu0, lower0, 3)
+    grad = A0 @ g + q0  # (of size 5e3: the answer slides on both cones, held by the linear term)
+    for k in range(2):  # feasible to rounding
+        fn, ft = g[3 * k], g[3 * k + 1 : 3 * k + 3]
+        assert fn >= lower0[k] * (1 - 1e-12) and np.linalg.norm(ft) <= mu0[k] * fn * (1 + 1e-12)
+    ours = 0.5 * g @ A0 @ g + q0 @ g
+    assert ours <= obj + 1e-10 * np.abs(grad).max()  # (no worse than Clarabel's: 6e-12 lower, in fact)
+    # both slide: −g_t along f_t, and g_n = μ‖g_t‖ at the second (the first also holds its bound, g_n > μ‖g_t‖)
+    for k in range(2):
+        gt, ft = grad[3 * k + 1 : 3 * k + 3], g[3 * k + 1 : 3 * k + 3]
+        assert np.linalg.norm(gt / np.linalg.norm(gt) + ft / np.linalg.norm(ft)) <= 1e-8
+    assert abs(grad[3] - mu0[1] * np.linalg.norm(grad[4:6])) <= 1e-9 * np.abs(grad).max()
+    # (the answer's sensitivity to the conditions: Clarabel's, 100 times nearer the last one, differs by 7e-7)
+    assert np.abs(g - ref).max() <= 1e-6 * np.abs(ref).max()
+    f = f[0].numpy()
+    assert f[0] == pytest.approx(lower[0, 0], rel=1e-6)  # (on the edge: the bound and the cone both hold tight)
+    assert np.linalg.norm(f[1:3]) == pytest.approx(mu[0, 0] * f[0], rel=1e-6)
+    # with gradients (the training's path: the minimiser is solved again, centred, and differentiated)
+    A_t = given[0].clone().requires_grad_(True)
+    f_g, info = solve_cone_qp(A_t, *given[1:], return_info=True)
+    assert info.status.tolist() == [Status.CONVERGED] and np.abs(f_g[0].detach().numpy() - f).max() <= 1e-12
+    f_g.sum().backward()
+    assert A_t.grad is not None and torch.isfinite(A_t.grad).all()

@@ -22,6 +22,8 @@ class SolverPolicy:
     ipm_tol: float = 1e-5  # the method's target before polishing: measured fastest in 1e-8 … 1e-3
     rounding_tol: float = 1e-13  # polishing reached rounding level: converged without a pass of the method to tol
     polish_steps: int = 3  # factorisations per polishing pass
+    polish_retry_steps: int = 12  # ... in the last attempt, on elements still unsolved: at a contact whose lower bound
+    # cuts its cone's apex (a learned e near 0: a bound 1e-4 of the answer), Newton converges slowly at first (5 needed)
     start_margin: float = 0.1  # how far inside the cones the first start lies: measured over 0.001 … 3, K 1 … 19
     robust_margin: float = 1.0  # CVXOPT's start, that of the retries: slower on average, more robust
     weak_tol: float = 1e-6  # a multiplier ≤ this × max(1, ‖slack‖) is weakly active (a stick/slip or touch switch)

@@ -30,6 +30,7 @@ from diffcontact.solver.status import Status, is_failure
 
 # The retry policy (``_solve_with_retries``): thresholds and their reasons in ``solver/policy.py``.
 IPM_TOL, ROUNDING_TOL, POLISH_STEPS = POLICY.ipm_tol, POLICY.rounding_tol, POLICY.polish_steps
+POLISH_RETRY_STEPS = POLICY.polish_retry_steps
 START_MARGIN, ROBUST_MARGIN = POLICY.start_margin, POLICY.robust_margin
 FAR, TIKHONOV, MU_CAP = POLICY.far, POLICY.tikhonov, POLICY.mu_cap
 # (plain ints: an IntEnum member costs a µs per access in Python 3.11)
@@ -396,21 +397,23 @@ class _Batch:
         first = [dict(ipm_tol=IPM_TOL, final_tol=min(tol, ROUNDING_TOL))] if tol < IPM_TOL else []
         return [*first, dict(ipm_tol=tol, final_tol=tol)]
 
-    @property
-    def options(self) -> dict:
+    def options(self, polish_steps: int = POLISH_STEPS) -> dict:
         """The kernel's options (the same in every pass)."""
         o = self.opts
-        return dict(acceptable_tol=o.acceptable_tol, max_iter=o.max_iter, refine_tol=IPM_TOL, polish_steps=POLISH_STEPS)
+        return dict(acceptable_tol=o.acceptable_tol, max_iter=o.max_iter, refine_tol=IPM_TOL, polish_steps=polish_steps)
 
     def result(self) -> kernel.IPMResult:
         """An empty kernel result for the batch."""
         return kernel.IPMResult(self.A, self.T, self.on_q, self.on_l, self.d)
 
-    def solve(self, elements: np.ndarray, start_margin: float, out: kernel.IPMResult, c=None, l_hat=None) -> None:
+    def solve(
+        self, elements: np.ndarray, start_margin: float, out: kernel.IPMResult, c=None, l_hat=None,
+        polish_steps: int = POLISH_STEPS,
+    ) -> None:  # fmt: skip
         """The kernel's passes on ``elements`` into ``out`` (c, l_hat: of another γ; default the batch's)."""
         c, l_hat = (self.c, self.l_hat) if c is None else (c, l_hat)
-        _solve_passes(self.A, self.T, c, l_hat, self.on_q, self.on_l, self.d, elements, self.passes, self.options,
-                      start_margin, out)  # fmt: skip
+        _solve_passes(self.A, self.T, c, l_hat, self.on_q, self.on_l, self.d, elements, self.passes,
+                      self.options(polish_steps), start_margin, out)  # fmt: skip
 
     def natural(self, gamma: np.ndarray, z: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """The relative natural residuals (``optimality.natural_residual``, with ``mu_check``) of the answers
@@ -443,13 +446,14 @@ def _solve_scaled(qp: ConeQP, opts: SolveOptions, arrays=None, mu_max=None, slid
       ``tol`` ≥ ``IPM_TOL``: pass 1 runs to ``tol``.
 
     The stages, each on the elements the ones before left unsolved: ``_default_start``, ``_robust_start``,
-    ``_rescaled_start`` and ``_solve_capped`` (each says what it does and why); failed elements
+    ``_polished_longer``, ``_rescaled_start`` and ``_solve_capped`` (each says what it does and why); failed elements
     (``status.is_failure``) get z = 0.
     """
     batch = _scaled_batch(qp.arrays() if arrays is None else arrays, qp.d, opts, mu_max, sliding, symmetric)
     result = _default_start(batch)
     if np.count_nonzero(result.status) or batch.check:  # (all CONVERGED and nothing to check: the common case)
         _robust_start(batch, result)
+        _polished_longer(batch, result)
         _rescaled_start(batch, result)
     outside = None
     if batch.free is not None and sliding is None:  # (contacts scaled free: their answer may leave the cone)
@@ -506,7 +510,7 @@ def _robust_start(batch: _Batch, result: kernel.IPMResult) -> None:
 
 
 def _rescaled_start(batch: _Batch, result: kernel.IPMResult) -> None:
-    """Stage 3, from the robust start with another γ: the elements still at MAX_ITER with a finite iterate, with γ
+    """Stage 4, from the robust start with another γ: the elements still at MAX_ITER with a finite iterate, with γ
     set to the size of the stalled iterate (a badly estimated solution size, nearly singular A, can stall the
     method); and the usable answers of elements with a friction coefficient above ``optimality.MU_CHECKED`` whose
     natural residual in unscaled units (``optimality.py``; contacts scaled free checked as free) exceeds
@@ -536,6 +540,22 @@ def _rescaled_start(batch: _Batch, result: kernel.IPMResult) -> None:
     fresh = better[stalled[better]]
     natural[fresh] = batch.natural(gamma, result.z, fresh)
     result.status[natural > acceptable_tol] = _MAX_ITER  # (a failure, not a wrong answer)
+
+
+def _polished_longer(batch: _Batch, result: kernel.IPMResult) -> None:
+    """Stage 3: the elements still INACCURATE or at MAX_ITER with a finite iterate, from the default start with
+    ``POLISH_RETRY_STEPS`` factorisations of polishing; an answer replaces the element's where its status is better.
+    Where a contact's minimiser sits on the edge at which its lower bound cuts its cone (restitution after a learned
+    e near 0: a bound 1e-4 of the answer's size), the method stalls near 3e-7 (its Newton systems lose accuracy as
+    the gap closes) and Newton's polishing from there converges slowly at first: 5 factorisations reach rounding
+    where the usual 3 end at 2.7e-7, MAX_ITER (``tests/data/lower_bound_edge.npz``)."""
+    finite = np.isfinite(result.z).all(-1)
+    elements = np.flatnonzero(((result.status == _INACCURATE) | (result.status == _MAX_ITER)) & finite)
+    if not len(elements):
+        return
+    out = batch.result()
+    batch.solve(elements, START_MARGIN, out, polish_steps=POLISH_RETRY_STEPS)
+    _keep_better(result, out, elements[out.status[elements] < result.status[elements]])
 
 
 def _rescaled_elements(batch: _Batch, result: kernel.IPMResult) -> tuple[np.ndarray, ...]:
