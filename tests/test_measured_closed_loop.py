@@ -42,5 +42,8 @@ def test_cube_tosses_recorded_imported_and_learned(tmp_path, com):
         assert abs(got - true) <= COM_RECOVERED, summary["centre_of_mass"]
     learned = json.loads((tmp_path / "run" / "learned.json").read_text())
     assert learned["mu"]["identifiable"] == [True] and learned["e"]["identifiable"] == [True]
+    # imported tosses are measured: the task's values are nominal, not a truth the summary could score against
+    assert learned["mu"]["nominal"] == [pytest.approx(0.18)] and "true" not in learned["mu"]
+    assert "max_abs_error" not in learned["e"] and learned["inertia"]["against"] == "nominal"
     assert abs(summary["mu"]["learned"][0] - 0.18) <= RECOVERED, summary["mu"]
     assert abs(summary["e"]["learned"][0] - 0.125) <= RECOVERED, summary["e"]

@@ -271,16 +271,18 @@ def train(
         if key not in summary:
             continue
         item = summary[key]
-        learned, true = item["learned"], item["true"]
+        versus = "nominal" if "nominal" in item else "true"  # (measured data: the task's values are nominal)
+        learned, true = item["learned"], item[versus]
         if len(set(true)) == 1 and len(set(learned)) == 1:  # homogeneous: one value for every slot
             learned, true = learned[:1], true[:1]
         shown = ", ".join(f"{a:.4f}/{b:.4f}" for a, b in zip(learned[:8], true[:8]))
         more = f" … ({len(learned)} values)" if len(learned) > 8 else ""
-        err = item["max_abs_error"]
+        err = item["max_abs_error" if versus == "true" else "max_abs_from_nominal"]
         hidden = item.get("identifiable", []).count(False)
         note = f" ({hidden} slots without the contacts that identify it)" if hidden and err is not None else ""
         shown_err = "not identifiable from the training data" if err is None else f"{err:.4f}{note}"
-        typer.echo(f"{key:10s} learned/true: {shown}{more}   max |error| = {shown_err}")
+        what = "max |error|" if versus == "true" else "max |learned - nominal|"
+        typer.echo(f"{key:10s} learned/{versus}: {shown}{more}   {what} = {shown_err}")
     if not summary["inertia"].get("given"):  # (IN-CP-SP learns no inertia)
         spread = summary["inertia"]["spread"]
         typer.echo(f"inertia    on the motions the constraints allow, up to the potential's scale: within {spread:.2%}")
@@ -293,7 +295,9 @@ def summarize(run: str = typer.Argument(..., help="Run directory of a finished `
 
     with _user_errors():
         summary = summarize_run(run)
-    typer.echo(json.dumps({k: summary[k]["max_abs_error"] for k in ("mu", "e", "mass_ratio")}))
+    errors = ("max_abs_error", "max_abs_from_nominal")  # (against the truth; on measured data, the nominal values)
+    shown = {k: {e: v for e, v in summary[k].items() if e in ("learned", *errors)} for k in ("mu", "e", "mass_ratio")}
+    typer.echo(json.dumps(shown))
 
 
 @app.command("evaluate")

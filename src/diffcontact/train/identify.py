@@ -160,6 +160,13 @@ def _subset(x: torch.Tensor, v: torch.Tensor, seed: int, size: int = MAX_CHUNKS)
     return x[keep], v[keep]
 
 
+def float64_copy(net):
+    """A float64 copy of the model ``net`` (whatever the training's dtype) that shares its contact solver: the
+    copy's failures are counted, and kept, with the net's own (``ContactSolver.counts``, ``failed``)."""
+    solver = net.simulator.contact_model.solver
+    return copy.deepcopy(net, {id(solver): solver}).double()
+
+
 def evidence(
     net, chunk_x: torch.Tensor, chunk_v: torch.Tensor, tolerance: float = TOLERANCE, noise: float = 0.0
 ) -> dict:
@@ -168,7 +175,7 @@ def evidence(
     ``{"chunks": [...], "mu": {"std_error", "bootstrap_error", "identified"}, "e": {...}}``, lists of one entry per
     coefficient (one on a homogeneous task); a standard error is None where infinite, a bootstrap error None there
     and without noise (see the module docstring)."""
-    net = copy.deepcopy(net).double()  # (float64, whatever the training's dtype)
+    net = float64_copy(net)
     sim, learned = net.simulator, net.params
     x, v = chunk_x.detach().double(), chunk_v.detach().double()
     with torch.no_grad():
@@ -232,7 +239,7 @@ def refine(
     before = {"mu_before": learned.mu_raw.detach().tolist(), "e_before": learned.e_raw.detach().tolist()}
     if learned.mu_transform != "projected" or learned.e_transform != "projected":
         return {**before, "iterations": 0, "reverted": [], "skipped": "only projected transforms hold μ, e as they are"}
-    work = copy.deepcopy(net).double()
+    work = float64_copy(net)
     sim, x, v = work.simulator, chunk_x.detach().double(), chunk_v.detach().double()
     with torch.no_grad():
         params = work.params()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections import Counter
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -33,7 +34,7 @@ from diffcontact.train.config import TrainConfig, check_given, task_training
 from diffcontact.train.datamodule import ContactDataModule
 from diffcontact.train.identify import refine
 from diffcontact.train.module import KEEP_FAILED, ContactLightningModule, quiet_lightning, saved_config
-from diffcontact.train.summary import learned_summary
+from diffcontact.train.summary import against_nominal, learned_summary
 
 
 def loss_curves(csv_dir: Path) -> dict[str, dict[int, float]]:
@@ -299,14 +300,14 @@ def train_run(
         if start is None and config.coef_start == "scan" and config.model in MODEL_NAMES:
             _scan_start(module, data, config, run, first)
         trainer.fit(module, datamodule=data, ckpt_path=str(start) if start else None)
-        summary = _finished(run, module, trainer, checkpoints.best_model_path, data, config.processes)
+        summary, failed = _finished(run, module, trainer, checkpoints.best_model_path, data, config.processes)
         summary["wall_time_s"] = module.seconds_before + time.perf_counter() - started  # (over all sessions)
         if patience:
             stopped = summary["epochs_trained"] < max_epochs
             summary["early_stop"] = {"patience": patience, "stopped": stopped, "planned_epochs": max_epochs}
         summary["run_dir"] = str(run.path)
         if trainer.is_global_zero:
-            _write_finished(run, summary, module.solver.failed)
+            _write_finished(run, summary, failed)
         return summary
 
 
@@ -365,22 +366,26 @@ def _data(config: TrainConfig, task: TaskConfig | None = None) -> ContactDataMod
     )
 
 
-def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, processes: int) -> dict:
+def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, processes: int) -> tuple[dict, list[dict]]:
     """The summary of a fitted run: what its best checkpoint learned (``_summary``), the checkpoint and the
     counters summed over the processes (``ContactLightningModule.totals``; every process calls this, only the first
-    writes the files)."""
+    writes the files) and those of its refinement and identification (``solver_failures_after_training``), and
+    the failed contact problems kept: training's, then those after it."""
     totals = module.totals()
     if trainer.world_size > 1:
         best = trainer.strategy.broadcast(best)  # (rank 0's choice: the one that wrote the checkpoints)
     # (the best checkpoint is in this run's folder, also when the folder was moved: _RunCheckpoint)
     built = build_task(data.config) if best else None  # (afresh, from the task file as the run parsed it)
     chosen = ContactLightningModule.from_checkpoint(best, built) if best else module
+    failed_before = Counter(chosen.solver.failures_by_status)
     split, noise = data.splits["train"], recorded_noise(data.folder)
     train = chosen.as_fitted("train", split.chunk_x, split.chunk_v)
     val, write = data.splits["val"], trainer.is_global_zero
     refined, best = _refined(chosen, train, val, best, run.checkpoints, noise, write=write)
     summary = _summary(chosen, train, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
-    return summary | ({"refinement": refined} if refined else {})
+    summary["solver_failures_after_training"] = dict(Counter(chosen.solver.failures_by_status) - failed_before)
+    failed = module.solver.failed + (chosen.solver.failed if chosen is not module else [])
+    return summary | ({"refinement": refined} if refined else {}), failed
 
 
 def _refined(
@@ -566,7 +571,8 @@ def _summary(
     measured dataset's table height; where μ and e started."""
     summary = learned_summary(chosen.net, chosen.task, *train, recorded_noise(data.folder))
     request = load_meta(data.folder)["request"]
-    if request.get("measured"):  # (the table's height is the importer's estimate, not learned)
+    if request.get("measured"):  # (the task's values are nominal; the table's height is the importer's estimate)
+        summary = against_nominal(summary)
         summary["table_height_m"] = {"value": request["table_height_m"], "how": request["table_height_method"]}
     if run.coef_start.is_file():
         summary["coef_start"] = json.loads(run.coef_start.read_text())["chosen"]
@@ -593,13 +599,18 @@ def summarize_run(run: str | Path) -> dict:
     dtype, folder = getattr(torch, args.get("dtype", "float32")), dataset_folder(args["data_root"], config.name)
     train_split, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
     train = chosen.as_fitted("train", train_split.chunk_x, train_split.chunk_v)
-    refined = {}
+    refined, failed_before = {}, Counter(chosen.solver.failures_by_status)
     if "refinement" not in old:  # (a run trained before the refinement: refined now, as training does)
         refined, old["best_checkpoint"] = _refined(
             chosen, train, val, str(best), run_dir.checkpoints, recorded_noise(folder), write=True
         )
     fresh = learned_summary(chosen.net, chosen.task, *train, recorded_noise(folder))
+    if load_meta(folder)["request"].get("measured"):
+        fresh = against_nominal(fresh)
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
     summary = {**fresh, **kept} | ({"refinement": refined} if refined else {})
+    summary["solver_failures_after_training"] = dict(Counter(chosen.solver.failures_by_status) - failed_before)
+    if _save_failed(run_dir, chosen.solver.failed):
+        summary["solver_failures_saved"] = run_dir.solver_failures.name
     write_json(run_dir.learned, summary)
     return summary

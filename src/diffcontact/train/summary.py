@@ -178,6 +178,20 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noi
     return out
 
 
+def against_nominal(summary: dict) -> dict:
+    """A summary (:func:`learned_summary`) of a model fitted to measured data, whose task holds nominal values on
+    record, not a truth: each compared item's "true" becomes "nominal" and its "max_abs_error" "max_abs_from_nominal"
+    (no "max_abs_error_identified"); the inertia's "spread" and "scale" are from the nominal inertia."""
+    out = dict(summary)
+    for key, item in summary.items():
+        if isinstance(item, dict) and "true" in item:
+            renamed = {"true": "nominal", "max_abs_error": "max_abs_from_nominal"}
+            out[key] = {renamed.get(k, k): v for k, v in item.items() if k != "max_abs_error_identified"}
+    if "inertia" in out:
+        out["inertia"] = {**out["inertia"], "against": "nominal"}
+    return out
+
+
 def baseline_summary(net, task, chunk_x: torch.Tensor) -> dict:
     """What a baseline learned (``learned.json``): ``{"model", "weights"[, "mass_ratio"[, "moments"]], "inertia"}``.
 
