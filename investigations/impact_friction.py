@@ -8,6 +8,8 @@ phase, and by ``--mu`` otherwise. It patches the contact solver's call for this 
 option.
 
     python investigations/impact_friction.py data/CubeToss --split val --mu 0.215 --mu-impact 0.16 --speed 0.3
+    python investigations/impact_friction.py data/CubeToss --split val --mu 0.215 --mu-impact 0.175 --e 0 \
+        --moments-scale 1.37 --com 0 0 0.007          # as the models that learn the centre of mass
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ def main() -> None:
     parser.add_argument("--speed", type=float, default=0.3, help="m/s")
     parser.add_argument("--e", type=float, default=None, help="default: the task file's")
     parser.add_argument("--moments-scale", type=float, default=1.0, help="a multiple of the task file's moments")
+    parser.add_argument("--com", type=float, nargs=3, default=None, help="the centre of mass (m, body frame)")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -58,6 +61,8 @@ def main() -> None:
     overrides = {"contact": {"mu": [args.mu]}, "body": {"moments": [args.moments_scale * m for m in moments]}}
     if args.e is not None:
         overrides["contact"]["cor"] = [args.e]
+    if args.com is not None:
+        overrides["body"]["centre_of_mass"] = args.com
     net = known_model(build_task(args.task, overrides))
     two_friction_coefficients(args.mu_impact, args.speed)
     predicted = predict_tosses(net, args.data, args.split)

@@ -1,0 +1,70 @@
+"""Where along a toss a model's position error builds up: the signed error of the predicted centre along each
+toss's recorded travel (its horizontal displacement from the first frame to the last) and across it, at given
+frames and at the last frame, in % of the box's width, mean and median over the tosses.
+
+A model that loses too much speed at the impacts is behind (negative) after them; one that slides too freely ends
+ahead (positive). Reads an evaluation's predictions.npz (``diffcontact evaluate``) and the dataset it scored.
+
+    python investigations/travel_bias.py runs/cubetoss-com/seed1/eval data/CubeToss --split test
+"""
+
+from __future__ import annotations
+
+import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which torch reads when it loads)
+
+# isort: split
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from diffcontact.eval.tosses import recorded_tosses
+
+FRAMES = (10, 20, 30, 40, 60, 80, 120)
+
+
+def travel_bias(predicted: dict, recorded, width: float, frames=FRAMES) -> dict:
+    """{"frame N": {"along_mean", "along_median", "across_mean", "tosses"}, ..., "last": {...}} of the predictions
+    (position (F, 3) m, offsets) against the recorded tosses (``Tosses``, the same tosses in the same order)."""
+    at: dict[str, list[tuple[float, float]]] = {f"frame {f}": [] for f in frames} | {"last": []}
+    for i in range(len(recorded.toss_id)):
+        a, b = recorded.offsets[i], recorded.offsets[i + 1]
+        rec, pred = recorded.position[a:b], predicted["position"][predicted["offsets"][i] : predicted["offsets"][i + 1]]
+        travel = rec[-1, :2] - rec[0, :2]
+        along = travel / max(float(np.linalg.norm(travel)), 1e-12)
+        across = np.array([-along[1], along[0]])
+        for key, f in [*((f"frame {f}", f) for f in frames), ("last", len(rec) - 1)]:
+            if f < len(rec):
+                d = (pred[f, :2] - rec[f, :2]) / width * 100.0
+                at[key].append((float(d @ along), float(d @ across)))
+    out = {}
+    for key, pairs in at.items():
+        if pairs:
+            values = np.asarray(pairs)
+            out[key] = {
+                "along_mean": float(values[:, 0].mean()),
+                "along_median": float(np.median(values[:, 0])),
+                "across_mean": float(values[:, 1].mean()),
+                "tosses": len(values),
+            }
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("eval_dir", help="an evaluation folder with predictions.npz")
+    parser.add_argument("data", help="the imported dataset it scored")
+    parser.add_argument("--split", default="test")
+    args = parser.parse_args()
+    recorded, request = recorded_tosses(args.data, args.split)
+    with np.load(Path(args.eval_dir) / "predictions.npz") as saved:
+        predicted = {k: saved[k] for k in saved.files}
+    if not np.array_equal(predicted["toss_id"], recorded.toss_id):
+        raise SystemExit(f"{args.eval_dir}: its tosses are not the {args.split} tosses of {args.data}")
+    width = 2.0 * float(request["half_extents_m"][0])
+    print(json.dumps(travel_bias(predicted, recorded, width), indent=1))
+
+
+if __name__ == "__main__":
+    main()
