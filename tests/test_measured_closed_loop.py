@@ -45,5 +45,10 @@ def test_cube_tosses_recorded_imported_and_learned(tmp_path, com):
     # imported tosses are measured: the task's values are nominal, not a truth the summary could score against
     assert learned["mu"]["nominal"] == [pytest.approx(0.18)] and "true" not in learned["mu"]
     assert "max_abs_error" not in learned["e"] and learned["inertia"]["against"] == "nominal"
+    # the evaluation of the run's test tosses carries what it learned, the centre of mass included
+    from diffcontact.eval.evaluate import evaluate_run
+
+    metrics = evaluate_run(tmp_path / "run", pictures=False)
+    assert metrics["learned"]["centre_of_mass"]["learned"] == learned_com and metrics["tosses"] == 2
     assert abs(summary["mu"]["learned"][0] - 0.18) <= RECOVERED, summary["mu"]
     assert abs(summary["e"]["learned"][0] - 0.125) <= RECOVERED, summary["e"]

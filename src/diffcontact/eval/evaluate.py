@@ -135,11 +135,13 @@ def evaluated(run: str | Path, task: str, model: str) -> dict | None:
 
 
 def _learned(run: Path) -> dict | None:
-    """μ, e, mass ratios and moments, learned against true, from the run's learned.json (None if it has none)."""
+    """μ, e, mass ratios, moments and the centre of mass (a box), learned against true (nominal, on measured data),
+    from the run's learned.json (None if it has none)."""
     if not RunDir(run).learned.is_file():
         return None
     learned = RunDir(run).read_learned()
-    return {k: learned[k] for k in ("mu", "e", "mass_ratio", "moments", "inertia") if k in learned}
+    keys = ("mu", "e", "mass_ratio", "moments", "centre_of_mass", "inertia")
+    return {k: learned[k] for k in keys if k in learned}
 
 
 def evaluate_nominal(
