@@ -3,7 +3,9 @@ toss's recorded travel (its horizontal displacement from the first frame to the 
 frames and at the last frame, in % of the box's width, mean and median over the tosses.
 
 A model that loses too much speed at the impacts is behind (negative) after them; one that slides too freely ends
-ahead (positive). Reads an evaluation's predictions.npz (``diffcontact evaluate``) and the dataset it scored.
+ahead (positive). The error across the travel (positive: to the left) is also split by the sign of each toss's
+first spin about the vertical. Reads an evaluation's predictions.npz (``diffcontact evaluate``) and the dataset it
+scored.
 
     python investigations/travel_bias.py runs/cubetoss-com/seed1/eval data/CubeToss --split test
 """
@@ -51,6 +53,29 @@ def travel_bias(predicted: dict, recorded, width: float, frames=FRAMES) -> dict:
     return out
 
 
+def across_by_spin(predicted: dict, recorded, width: float) -> dict:
+    """The last frame's error across the travel (% of the width) of the tosses whose first recorded spin about the
+    table's vertical is positive and of those where it is negative: {"spin > 0": {"across_mean", "tosses"},
+    "spin < 0": {...}, "correlation": Pearson's r of that error with the spin}."""
+    across, spin = [], []
+    for i in range(len(recorded.toss_id)):
+        a, b = recorded.offsets[i], recorded.offsets[i + 1]
+        rec, pred = recorded.position[a:b], predicted["position"][predicted["offsets"][i] : predicted["offsets"][i + 1]]
+        travel = rec[-1, :2] - rec[0, :2]
+        normal = np.array([-travel[1], travel[0]]) / max(float(np.linalg.norm(travel)), 1e-12)
+        across.append(float((pred[-1, :2] - rec[-1, :2]) @ normal / width * 100.0))
+        w, x, y, z = recorded.quaternion[a]  # (body to table: the body-frame angular velocity's vertical part)
+        third_row = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+        spin.append(float(third_row @ recorded.omega[a]))
+    across_a, spin_a = np.asarray(across), np.asarray(spin)
+    out: dict = {}
+    for key, mask in (("spin > 0", spin_a > 0), ("spin < 0", spin_a < 0)):
+        if mask.any():
+            out[key] = {"across_mean": float(across_a[mask].mean()), "tosses": int(mask.sum())}
+    out["correlation"] = float(np.corrcoef(across_a, spin_a)[0, 1])
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("eval_dir", help="an evaluation folder with predictions.npz")
@@ -63,7 +88,9 @@ def main() -> None:
     if not np.array_equal(predicted["toss_id"], recorded.toss_id):
         raise SystemExit(f"{args.eval_dir}: its tosses are not the {args.split} tosses of {args.data}")
     width = 2.0 * float(request["half_extents_m"][0])
-    print(json.dumps(travel_bias(predicted, recorded, width), indent=1))
+    out = travel_bias(predicted, recorded, width)
+    out["across, by first spin"] = across_by_spin(predicted, recorded, width)
+    print(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":
