@@ -13,6 +13,7 @@ moments per unit mass about it). This script checks the closed form against the 
 states (float64) and times both, forward and backward, at the training batch (float32, one thread), alternating.
 
     python investigations/rigid_field.py --batch 50 --repeats 200
+    python investigations/rigid_field.py --tosses data/CubeToss --split val   # and whole tosses, both ways
 """
 
 from __future__ import annotations
@@ -72,11 +73,38 @@ def random_states(batch: int, dtype: torch.dtype, seed: int = 0) -> tuple[torch.
     return x.to(dtype), v.to(dtype)
 
 
+def compare_tosses(data: str, split: str, task) -> dict:
+    """The nominal model of ``task`` rolled out over the whole tosses of ``split`` (as ``evaluate`` does, float64)
+    with the generic field and with the closed form: both metrics, and the largest difference of the predicted
+    centres (m)."""
+    import diffcontact.simulator as simulator
+    from diffcontact.eval.tosses import predict_tosses, score_tosses
+    from diffcontact.models.model import known_model
+
+    generic = simulator.lagrangian_field
+    out = {}
+    try:
+        for name in ("generic", "closed form"):
+            if name == "closed form":
+                simulator.lagrangian_field = lambda cons, params, x, v, Minv=None: rigid_field(params, x, v)
+            start = time.perf_counter()
+            predicted = predict_tosses(known_model(task), data, split)
+            out[name] = score_tosses(predicted, data, split) | {"seconds": time.perf_counter() - start}
+            out[name + " positions"] = predicted["position"]
+    finally:
+        simulator.lagrangian_field = generic
+    a, b = out.pop("generic positions"), out.pop("closed form positions")
+    out["max_position_difference_m"] = float(abs(a - b).max())
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=200)
     parser.add_argument("--com", type=float, nargs=3, default=(0.0007, 0.0003, 0.007), help="m, body frame")
+    parser.add_argument("--tosses", default=None, help="an imported dataset: also roll its tosses out both ways")
+    parser.add_argument("--split", default="val")
     args = parser.parse_args()
     torch.set_num_threads(1)
     task = build_task("CubeToss", {"body": {"centre_of_mass": list(args.com), "moments": [0.0015, 0.0016, 0.0017]}})
@@ -111,6 +139,8 @@ def main() -> None:
             times[name].append((time.perf_counter() - start) / args.repeats * 1e3)
     out["ms_forward_backward"] = times
     out["ratio_of_medians"] = sorted(times["generic"])[1] / sorted(times["closed form"])[1]
+    if args.tosses:
+        out["tosses"] = compare_tosses(args.tosses, args.split, task)
     print(json.dumps(out, indent=1))
 
 
