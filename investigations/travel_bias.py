@@ -4,8 +4,8 @@ frames and at the last frame, in % of the box's width, mean and median over the 
 
 A model that loses too much speed at the impacts is behind (negative) after them; one that slides too freely ends
 ahead (positive). The error across the travel (positive: to the left) is also split by the sign of each toss's
-first spin about the vertical. Reads an evaluation's predictions.npz (``diffcontact evaluate``) and the dataset it
-scored.
+first spin about the vertical and about its travel direction. Reads an evaluation's predictions.npz
+(``diffcontact evaluate``) and the dataset it scored.
 
     python investigations/travel_bias.py runs/cubetoss-com/seed1/eval data/CubeToss --split test
 """
@@ -54,25 +54,35 @@ def travel_bias(predicted: dict, recorded, width: float, frames=FRAMES) -> dict:
 
 
 def across_by_spin(predicted: dict, recorded, width: float) -> dict:
-    """The last frame's error across the travel (% of the width) of the tosses whose first recorded spin about the
-    table's vertical is positive and of those where it is negative: {"spin > 0": {"across_mean", "tosses"},
-    "spin < 0": {...}, "correlation": Pearson's r of that error with the spin}."""
-    across, spin = [], []
+    """The last frame's error across the travel (% of the width) split by the sign of each toss's first spin (table
+    frame) about the vertical and about its travel direction: {"about the vertical": {"spin > 0": {"across_mean",
+    "tosses"}, "spin < 0": {...}, "correlation": Pearson's r of that error with the spin}, "about the travel": ...}."""
+    across, spins = [], []
     for i in range(len(recorded.toss_id)):
         a, b = recorded.offsets[i], recorded.offsets[i + 1]
         rec, pred = recorded.position[a:b], predicted["position"][predicted["offsets"][i] : predicted["offsets"][i + 1]]
         travel = rec[-1, :2] - rec[0, :2]
-        normal = np.array([-travel[1], travel[0]]) / max(float(np.linalg.norm(travel)), 1e-12)
+        along = travel / max(float(np.linalg.norm(travel)), 1e-12)
+        normal = np.array([-along[1], along[0]])
         across.append(float((pred[-1, :2] - rec[-1, :2]) @ normal / width * 100.0))
-        w, x, y, z = recorded.quaternion[a]  # (body to table: the body-frame angular velocity's vertical part)
-        third_row = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
-        spin.append(float(third_row @ recorded.omega[a]))
-    across_a, spin_a = np.asarray(across), np.asarray(spin)
+        w, x, y, z = recorded.quaternion[a]  # (body to table: the table-frame angular velocity is R ω_body)
+        rotation = np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+        omega = rotation @ recorded.omega[a]
+        spins.append((float(omega[2]), float(omega[:2] @ along)))
+    across_a, spin_a = np.asarray(across), np.asarray(spins)
     out: dict = {}
-    for key, mask in (("spin > 0", spin_a > 0), ("spin < 0", spin_a < 0)):
-        if mask.any():
-            out[key] = {"across_mean": float(across_a[mask].mean()), "tosses": int(mask.sum())}
-    out["correlation"] = float(np.corrcoef(across_a, spin_a)[0, 1])
+    for column, about in enumerate(("about the vertical", "about the travel")):
+        spin, part = spin_a[:, column], {}
+        for key, mask in (("spin > 0", spin > 0), ("spin < 0", spin < 0)):
+            if mask.any():
+                part[key] = {"across_mean": float(across_a[mask].mean()), "tosses": int(mask.sum())}
+        out[about] = part | {"correlation": float(np.corrcoef(across_a, spin)[0, 1])}
     return out
 
 
