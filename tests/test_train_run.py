@@ -306,6 +306,14 @@ def test_summarize_recomputes_learned_json_and_keeps_the_counters(data_root, tmp
     moved = tmp_path / "moved"
     run.rename(moved)  # (the checkpoint path recorded is the old one: the run's own folder is used)
     assert summarize_run(moved)["mu"] == learned["mu"]
+    from typer.testing import CliRunner
+
+    from diffcontact.cli import app
+
+    result = CliRunner().invoke(app, ["summarize", str(moved)])  # (prints what was learned and its error)
+    assert result.exit_code == 0, result.output
+    shown = json.loads(result.output)
+    assert shown["mu"] == {"learned": learned["mu"]["learned"], "max_abs_error": learned["mu"]["max_abs_error"]}
     for ckpt in (moved / "checkpoints").glob("*best*"):
         ckpt.unlink()
     with pytest.raises(ConfigError, match="best checkpoint .* is missing"):
