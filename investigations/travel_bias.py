@@ -20,22 +20,30 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from diffcontact.eval.tosses import recorded_tosses
+from diffcontact.systems.poses import quaternion_to_matrix
 
 FRAMES = (10, 20, 30, 40, 60, 80, 120)
+
+
+def _tosses(predicted: dict, recorded):
+    """Per toss: its first frame's index into ``recorded``, the recorded and predicted centres (T, 3) m, and the unit
+    horizontal directions along its travel (first frame to last) and across it (to the left), (2,) each."""
+    for i in range(len(recorded.toss_id)):
+        a, b = recorded.offsets[i], recorded.offsets[i + 1]
+        rec, pred = recorded.position[a:b], predicted["position"][predicted["offsets"][i] : predicted["offsets"][i + 1]]
+        travel = rec[-1, :2] - rec[0, :2]
+        along = travel / max(float(np.linalg.norm(travel)), 1e-12)
+        yield a, rec, pred, along, np.array([-along[1], along[0]])
 
 
 def travel_bias(predicted: dict, recorded, width: float, frames=FRAMES) -> dict:
     """{"frame N": {"along_mean", "along_median", "across_mean", "tosses"}, ..., "last": {...}} of the predictions
     (position (F, 3) m, offsets) against the recorded tosses (``Tosses``, the same tosses in the same order)."""
     at: dict[str, list[tuple[float, float]]] = {f"frame {f}": [] for f in frames} | {"last": []}
-    for i in range(len(recorded.toss_id)):
-        a, b = recorded.offsets[i], recorded.offsets[i + 1]
-        rec, pred = recorded.position[a:b], predicted["position"][predicted["offsets"][i] : predicted["offsets"][i + 1]]
-        travel = rec[-1, :2] - rec[0, :2]
-        along = travel / max(float(np.linalg.norm(travel)), 1e-12)
-        across = np.array([-along[1], along[0]])
+    for _, rec, pred, along, across in _tosses(predicted, recorded):
         for key, f in [*((f"frame {f}", f) for f in frames), ("last", len(rec) - 1)]:
             if f < len(rec):
                 d = (pred[f, :2] - rec[f, :2]) / width * 100.0
@@ -58,21 +66,9 @@ def across_by_spin(predicted: dict, recorded, width: float) -> dict:
     frame) about the vertical and about its travel direction: {"about the vertical": {"spin > 0": {"across_mean",
     "tosses"}, "spin < 0": {...}, "correlation": Pearson's r of that error with the spin}, "about the travel": ...}."""
     across, spins = [], []
-    for i in range(len(recorded.toss_id)):
-        a, b = recorded.offsets[i], recorded.offsets[i + 1]
-        rec, pred = recorded.position[a:b], predicted["position"][predicted["offsets"][i] : predicted["offsets"][i + 1]]
-        travel = rec[-1, :2] - rec[0, :2]
-        along = travel / max(float(np.linalg.norm(travel)), 1e-12)
-        normal = np.array([-along[1], along[0]])
+    for a, rec, pred, along, normal in _tosses(predicted, recorded):
         across.append(float((pred[-1, :2] - rec[-1, :2]) @ normal / width * 100.0))
-        w, x, y, z = recorded.quaternion[a]  # (body to table: the table-frame angular velocity is R ω_body)
-        rotation = np.array(
-            [
-                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-            ]
-        )
+        rotation = quaternion_to_matrix(torch.from_numpy(recorded.quaternion[a])).numpy()  # (body to table)
         omega = rotation @ recorded.omega[a]
         spins.append((float(omega[2]), float(omega[:2] @ along)))
     across_a, spin_a = np.asarray(across), np.asarray(spins)
