@@ -20,10 +20,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from diffcontact.eval.tosses import recorded_tosses
-from diffcontact.systems.poses import quaternion_to_matrix
+from diffcontact.systems.poses import rotate
 
 FRAMES = (10, 20, 30, 40, 60, 80, 120)
 
@@ -68,8 +67,7 @@ def across_by_spin(predicted: dict, recorded, width: float) -> dict:
     across, spins = [], []
     for a, rec, pred, along, normal in _tosses(predicted, recorded):
         across.append(float((pred[-1, :2] - rec[-1, :2]) @ normal / width * 100.0))
-        rotation = quaternion_to_matrix(torch.from_numpy(recorded.quaternion[a])).numpy()  # (body to table)
-        omega = rotation @ recorded.omega[a]
+        omega = rotate(recorded.quaternion[a : a + 1], recorded.omega[a][None])[0, 0]  # (body to table)
         spins.append((float(omega[2]), float(omega[:2] @ along)))
     across_a, spin_a = np.asarray(across), np.asarray(spins)
     out: dict = {}

@@ -85,7 +85,7 @@ def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> t
         raise ConfigError(f"{ENGINE}: give {' and '.join(COMPLIANT)} together, or neither (rigid contact)")
     start = tosses.offsets[:-1]
     com = com_offset(params)
-    omega_world = np.stack([rotate(tosses.quaternion[f : f + 1], tosses.omega[f : f + 1])[0, 0] for f in start])
+    omega_world = rotate(tosses.quaternion[start], tosses.omega[start][:, None])[:, 0]  # (n, 3): each toss's own
     com_world = rotate(tosses.quaternion[start], com[None])[:, 0]  # (n, 3): R c at each toss's first frame
     com_velocity = tosses.velocity[start] + np.cross(omega_world, com_world)  # v_centre + R (ω × c)
 

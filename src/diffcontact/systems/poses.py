@@ -130,9 +130,10 @@ def rotation_vector(q: torch.Tensor) -> torch.Tensor:
 
 
 def rotate(quaternion: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Body-frame points (V, 3) rotated by each frame's quaternion (frames, 4), w first: (frames, V, 3)."""
+    """Body-frame points (V, 3), or each frame's own (frames, V, 3), rotated by each frame's quaternion (frames, 4),
+    w first: (frames, V, 3)."""
     w, u = quaternion[:, :1, None], quaternion[:, None, 1:]  # (F, 1, 1), (F, 1, 3)
-    p = np.broadcast_to(points[None], (len(quaternion), *points.shape))
+    p = points if points.ndim == 3 else np.broadcast_to(points[None], (len(quaternion), *points.shape))
     t = 2.0 * np.cross(u, p)
     return p + w * t + np.cross(u, t)
 
