@@ -10,6 +10,9 @@ option.
     python investigations/impact_friction.py data/CubeToss --split val --mu 0.215 --mu-impact 0.16 --speed 0.3
     python investigations/impact_friction.py data/CubeToss --split val --mu 0.215 --mu-impact 0.175 --e 0 \
         --moments-scale 1.37 --com 0 0 0.007          # as the models that learn the centre of mass
+
+The output holds each toss's position error (``per_toss_position_error``), so that two settings are compared toss by
+toss: ``python investigations/com_offset.py --paired A.json B.json``.
 """
 
 from __future__ import annotations
@@ -22,7 +25,8 @@ import json
 
 import torch
 
-from diffcontact.eval.tosses import predict_tosses, score_tosses
+from diffcontact.eval.pose_metrics import per_toss_position_error
+from diffcontact.eval.tosses import predict_tosses, recorded_tosses, score_tosses
 from diffcontact.models.model import known_model
 from diffcontact.solver.contact_solver import ContactSolver
 from diffcontact.systems.registry import build_task
@@ -67,7 +71,11 @@ def main() -> None:
     two_friction_coefficients(args.mu_impact, args.speed)
     predicted = predict_tosses(net, args.data, args.split)
     metrics = score_tosses(predicted, args.data, args.split)
-    print(json.dumps({"settings": vars(args), "metrics": metrics}, indent=1))
+    tosses, request = recorded_tosses(args.data, args.split)
+    half = request["half_extents_m"]
+    per_toss = per_toss_position_error(predicted["position"], tosses.position, tosses.offsets, half)
+    result = {"settings": vars(args), "metrics": metrics, "per_toss_position_error": per_toss.tolist()}
+    print(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":

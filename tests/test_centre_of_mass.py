@@ -189,3 +189,19 @@ def test_weights_without_a_centre_of_mass_load_as_a_uniform_box():
         net.params.com_raw.fill_(1.0)
     net.load_state_dict(saved)
     assert torch.equal(net.params.inertia.com, torch.zeros(1, 3, dtype=F64))
+
+
+@pytest.mark.parametrize("name", ["MLP-CD-CLNN", "IN-CP-CLNN"])
+def test_the_clnn_baselines_learn_the_box_inertia_as_the_contact_models_do(name):
+    net = build_model(_cube(com=(0.0, 0.0, 0.0)), name, moments_init=1e-3)
+    params = net.params
+    moments = params.inertia.moments
+    assert bool(((moments > 1e-3 * 0.5) & (moments < 1e-3 * 2.0)).all())  # (around moments_init, as CM-CD-CLNN's)
+    assert params.com_raw is not None and torch.equal(params.inertia.com, torch.zeros(1, 3, dtype=F64))
+    x0 = torch.tensor([[[0.0, 0.0, 0.3], [1.0, 0.0, 0.3], [0.0, 1.0, 0.3], [0.0, 0.0, 1.3]]], dtype=F64)
+    v0 = torch.tensor([[[0.5, 0.0, 0.0]] * 4], dtype=F64) + torch.cross(
+        torch.tensor([[0.0, 3.0, 1.0]], dtype=F64).expand(4, 3), x0[0] - x0[0, :1], dim=-1
+    )
+    x, _ = net(x0, v0, 5)
+    x[..., 0, :].sum().backward()  # (free flight: the centre's path depends on where the mass is)
+    assert params.com_raw.grad.abs().max() > 1e-8

@@ -82,8 +82,9 @@ def build_model(
     paper's).  ``potential``: "mlp" (the paper's learned network), "linked" (that network plus a learned potential of
     each link's stretch, for a system with links: the rope), "gravity" (uniform gravity along −z, −y in 2-D, of a
     learned strength g) or "known" (the task's own, not learned); ``moments_init``: the scale (m² per unit
-    mass) around which the learned second moments start (about the square of the bodies' size). A task whose bodies
-    have a centre of mass off their first point (``Inertia.com``: the box) has it learned, from that point.
+    mass) around which the learned second moments start (about the square of the bodies' size; the baselines' too).
+    A task whose bodies have a centre of mass off their first point (``Inertia.com``: the box) has it learned, from
+    that point, by every model that learns an inertia.
     """
     from diffcontact.models.baselines import BASELINE_NAMES, build_baseline
 
@@ -92,7 +93,7 @@ def build_model(
             raise ConfigError(f"potential = {potential!r} is for the contact models; {name} learns its own network")
         if reg is not None:
             raise ConfigError(f"reg = {reg:g} is for the regularised models (CMr-...), not {name}")
-        return build_baseline(task, name, hidden=hidden, layers=layers, seed=seed)
+        return build_baseline(task, name, hidden=hidden, layers=layers, seed=seed, moments_init=moments_init)
     if name not in MODEL_NAMES:
         raise ConfigError(f"model = {name!r} is not one of {list(MODEL_NAMES) + list(BASELINE_NAMES)}")
     dynamics, default_reg = MODEL_NAMES[name]

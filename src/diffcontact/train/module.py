@@ -114,8 +114,9 @@ class ContactLightningModule(pl.LightningModule):
             seed=c.seed,
             solver=self.solver,
             reg=c.reg or None,  # (recorded 0 for the exact models: none)
-            # (the potential and the moments' start are the contact models' settings: a baseline learns its own)
-            **({} if model in BASELINE_NAMES else {"potential": c.potential, "moments_init": c.moments_init}),
+            moments_init=c.moments_init,  # (the bodies' size², for every model that learns an inertia)
+            # (the potential is the contact models' setting: a baseline learns its own network)
+            **({} if model in BASELINE_NAMES else {"potential": c.potential}),
         )
         self.net = net.to(getattr(torch, c.dtype))
         q, n_points = self.task.system.points_per_body, self.task.system.n_points

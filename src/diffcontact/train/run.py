@@ -11,6 +11,7 @@ from pathlib import Path
 
 import lightning
 import lightning.pytorch as pl
+import numpy as np
 import torch
 from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
@@ -333,13 +334,24 @@ def _write_finished(run: RunDir, summary: dict, failed: list[dict]) -> None:
 
 def _save_failed(run: RunDir, problems: list[dict]) -> bool:
     """Add this session's failed contact problems (``ContactSolver.failed``: this process's first ones) to the
-    run's ``solver_failures.npz`` (a resumed run's earlier ones kept first), at most ``KEEP_FAILED`` in all; returns
-    whether the file exists."""
+    run's ``solver_failures.npz`` (a resumed run's earlier ones kept first), at most ``KEEP_FAILED`` in all; a problem
+    already in it (the same arrays: ``summarize`` run again on the same checkpoint meets the same ones) is not added
+    again.  Returns whether the file exists."""
     path = run.solver_failures
-    if problems:
-        before = load_failed(path) if path.is_file() else []
-        save_failed(path, (before + problems)[: max(KEEP_FAILED, len(before))])
+    before = load_failed(path) if problems and path.is_file() else []
+    seen, new = {_problem_key(p) for p in before}, []
+    for problem in problems:
+        if (key := _problem_key(problem)) not in seen:
+            seen.add(key)
+            new.append(problem)
+    if new:
+        save_failed(path, (before + new)[: max(KEEP_FAILED, len(before))])
     return path.is_file()
+
+
+def _problem_key(problem: dict) -> tuple:
+    """A failed problem's arrays (``ContactSolver.failed``), hashable: equal for the same problem met again."""
+    return tuple(sorted((k, np.asarray(v).shape, np.asarray(v).tobytes()) for k, v in problem.items()))
 
 
 def _check_launch(accelerator: str, devices: int | None, num_nodes: int | None) -> None:

@@ -41,9 +41,13 @@ def _gravity_force(task) -> torch.Tensor:
     return potential_force(task.params.replace(potential=SumPotential(*terms)), x)[0].detach()
 
 
-def build_baseline(task, name: str, *, hidden: int = 256, layers: int = 3, seed: int = 0) -> Baseline:
+def build_baseline(
+    task, name: str, *, hidden: int = 256, layers: int = 3, seed: int = 0, moments_init: float = 1.0
+) -> Baseline:
     """One of :data:`BASELINE_NAMES` for a Task, float64.  ``hidden``, ``layers``: the learned potential's MLP (and
-    MLP-CD-CLNN's jump MLP; the paper's 256 × 3); the interaction networks have the published sizes."""
+    MLP-CD-CLNN's jump MLP; the paper's 256 × 3); the interaction networks have the published sizes.  The CLNN
+    baselines learn the bodies' inertia as the contact models do: ``moments_init`` (m² per unit mass) is where the
+    second moments start, and a box learns its centre of mass (``LearnedParams``)."""
     if name not in BASELINE_NAMES:
         raise ConfigError(f"model = {name!r} is not one of {list(BASELINE_NAMES)}")
     system = task.system
@@ -63,6 +67,8 @@ def build_baseline(task, name: str, *, hidden: int = 256, layers: int = 3, seed:
         hidden=hidden,
         layers=layers,
         seed=seed,
+        moments_init=moments_init,
+        com=task.params.inertia.com is not None,
     )
     sim = Simulator(system, "lagrangian")
     if name == "MLP-CD-CLNN":
