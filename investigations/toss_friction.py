@@ -7,7 +7,9 @@ free-flight fit as ``evaluate`` starts them):
 - **flat sliding**: frames where the four lowest corners are within 1.5 mm of the table for 13 frames around, the
   centre moving at least 3 cm/s; a parabola fitted to the centre's horizontal path over those 13 frames gives the
   speed and the deceleration along the motion. Under Coulomb friction a box sliding flat decelerates at μ g (less
-  while it also spins). Reported in g by speed bin (median and interquartile range);
+  while it also spins). Reported in g by speed bin (median and interquartile range); and, between 0.1 and 0.6 m/s,
+  the acceleration across the motion (to its left positive: zero for a box that slides without spinning, whatever
+  its load on each corner), by the spin about the vertical and by the direction of travel;
 - **the first impact**: the change of the centre's velocity across the toss's first contact (two-frame differences
   at 3 frames before and 3 after, gravity's part removed): |Δv_tangential| / Δv_normal is the ratio of the tangential
   to the normal impulse, at most μ, and equal to μ where the corner slides through the whole impact; and |Δω|, the
@@ -16,6 +18,8 @@ free-flight fit as ``evaluate`` starts them):
   (1 untouched, 0 stopped, < 0 reversed), where it slid at 0.2 m/s or more.
 
     python investigations/toss_friction.py data/CubeToss --split val
+    python investigations/toss_friction.py data/CubeToss --split val --no-model \
+        --predictions runs/CubeToss/CM-CD-CLNN/seed0/eval-val/predictions.npz    # a trained model's rollouts
 
 ``--grid G.npz`` (``face_outcomes.py --save`` on the same split) also sets each toss's best μ of that grid (the
 least error over its e) against the deceleration the toss slides at (median of its flat frames at 0.1–0.6 m/s),
@@ -52,11 +56,14 @@ from diffcontact.systems.poses import (
 from diffcontact.systems.registry import build_task
 
 SPEED_BINS = (0.03, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8)  # m/s
+SPIN_BINS = (-20.0, -2.0, -0.5, 0.5, 2.0, 20.0)  # rad/s, about the vertical
 FLAT_MM, HALF_WINDOW = 1.5, 6
 
 
 def flat_sliding(position, quaternion, dt: float, table_height: float, half_extents) -> np.ndarray:
-    """(n, 2): speed (m/s) and deceleration along the motion (m/s²) of the flat-sliding frames of one toss."""
+    """(n, 5) of the flat-sliding frames of one toss: speed (m/s), deceleration along the motion (m/s²), acceleration
+    across it (m/s², to the left of the motion positive), the spin about the vertical (rad/s, counterclockwise from
+    above positive) and the direction of travel (degrees from the table's x axis)."""
     heights = (position[:, None] + rotate(quaternion, box_vertices(half_extents)))[..., 2] - table_height
     flat = np.sort(heights, 1)[:, 3] < FLAT_MM * 1e-3
     t = np.arange(-HALF_WINDOW, HALF_WINDOW + 1) * dt
@@ -68,8 +75,11 @@ def flat_sliding(position, quaternion, dt: float, table_height: float, half_exte
         coef, *_ = np.linalg.lstsq(X, position[i - HALF_WINDOW : i + HALF_WINDOW + 1, :2], rcond=None)
         speed = float(np.linalg.norm(coef[1]))
         if speed >= SPEED_BINS[0]:
-            out.append((speed, -float(coef[2] @ coef[1]) / speed))
-    return np.array(out).reshape(-1, 2)
+            along = coef[1] / speed
+            left = np.array([-along[1], along[0]])
+            direction = float(np.degrees(np.arctan2(along[1], along[0])))
+            out.append((speed, -float(coef[2] @ along), float(coef[2] @ left), spin(quaternion, i, dt)[2], direction))
+    return np.array(out).reshape(-1, 5)
 
 
 def spin(quaternion, i: int, dt: float) -> np.ndarray:
@@ -110,12 +120,38 @@ def summary(sliding: np.ndarray, ratios: np.ndarray, gravity: float) -> dict:
                 "median_g": round(q50, 3),
                 "iqr_g": [round(q25, 3), round(q75, 3)],
             }
+    fast = sliding[(sliding[:, 0] >= 0.1) & (sliding[:, 0] < 0.6)]  # (the speeds where the deceleration is steady)
+    lateral, spin_z = fast[:, 2] / gravity, fast[:, 3]
+    by_spin = {}
+    for lo, hi in zip(SPIN_BINS[:-1], SPIN_BINS[1:], strict=True):
+        k = (spin_z >= lo) & (spin_z < hi)
+        if k.any():
+            by_spin[f"{lo:g} to {hi:g} rad/s"] = {
+                "frames": int(k.sum()),
+                "median_g": round(float(np.median(lateral[k])), 4),
+            }
+    by_direction = {}
+    for lo in range(-180, 180, 45):
+        k = (fast[:, 4] >= lo) & (fast[:, 4] < lo + 45)
+        if k.any():
+            by_direction[f"{lo} to {lo + 45} deg"] = {
+                "frames": int(k.sum()),
+                "along_median_g": round(float(np.median(fast[k, 1] / gravity)), 3),
+                "across_median_g": round(float(np.median(lateral[k])), 4),
+            }
     impacts = ratios[ratios[:, 1] > 0.5]  # (impacts of at least 0.5 m/s)
     r = impacts[:, 0]
     slipping = impacts[impacts[:, 3] > 0.2]  # (the lowest corner slipping at 0.2 m/s or more before)
     kept = slipping[:, 4]
     return {
         "flat_sliding_deceleration": bins,
+        "flat_sliding_across_0.1-0.6_m_s": {
+            "frames": len(fast),
+            "median_g": round(float(np.median(lateral)), 4),
+            "correlation_with_spin": round(float(np.corrcoef(spin_z, lateral)[0, 1]), 3),
+            "by_spin": by_spin,
+            "by_direction": by_direction,
+        },
         "first_impact_ratio": {
             "impacts": len(r),
             "median": round(float(np.median(r)), 3),
@@ -171,6 +207,7 @@ def main() -> None:
     parser.add_argument("--e", type=float, default=None, help="the model's e (default: the task file's)")
     parser.add_argument("--no-model", action="store_true", help="measure the recording only")
     parser.add_argument("--grid", help="face_outcomes.py --save of the same split: best μ against sliding friction")
+    parser.add_argument("--predictions", help="a run's predictions.npz on the same split (diffcontact evaluate)")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -208,6 +245,12 @@ def main() -> None:
 
         label = f"model mu {float(task.params.mu[0]):g} e {float(task.params.e[0]):g}"
         result[label] = measure(predicted())
+    if args.predictions:
+        with np.load(args.predictions) as saved:
+            if not np.array_equal(saved["toss_id"], tosses.toss_id):
+                raise SystemExit(f"{args.predictions} holds other tosses than this split")
+            position, quaternion = saved["position"], saved["quaternion"]
+        result[args.predictions] = measure((position[r], quaternion[r]) for r in rows)
     if args.grid:
         result["best_mu_against_sliding"] = best_mu_against_sliding(args.grid, tosses, height, half, gravity)
     print(json.dumps(result, indent=1))
