@@ -15,6 +15,7 @@ from diffcontact.simulator import simulator_for
 from diffcontact.state import Inertia, State
 from diffcontact.systems import box
 from diffcontact.systems.poses import hat, points_to_pose, pose_to_points, quaternion_to_matrix
+from diffcontact.train.summary import baseline_summary
 
 F64 = torch.float64
 HALF = 0.0524
@@ -205,3 +206,8 @@ def test_the_clnn_baselines_learn_the_box_inertia_as_the_contact_models_do(name)
     x, _ = net(x0, v0, 5)
     x[..., 0, :].sum().backward()  # (free flight: the centre's path depends on where the mass is)
     assert params.com_raw.grad.abs().max() > 1e-8
+    with torch.no_grad():
+        params.com_raw.copy_(torch.tensor([[0.0, 0.1, 0.2]]))
+    reported = baseline_summary(net, net_task := _cube(com=(0.0, 0.0, 0.0)), x.detach())["centre_of_mass"]
+    assert reported["learned"] == pytest.approx((params.com_scale * torch.tensor([0.0, 0.1, 0.2])).tolist())
+    assert reported["true"] == net_task.params.inertia.com.flatten().tolist()

@@ -163,11 +163,7 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noi
         err = [abs(a - b) for a, b, c in zip(out[key]["learned"], out[key]["true"], per_slot) if ok[c]]
         out[key]["max_abs_error_identified"] = max(err) if err else None
     out["evidence_chunks"] = [found["chunks"][c] for c in per_slot]
-    moments = truth.inertia.moments
-    if moments.numel():
-        out["moments"] = compare(learned.inertia.moments.detach().double().flatten(), moments.double().flatten())
-    if truth.inertia.com is not None and learned.inertia.com is not None:  # (the box: m, body frame, from its centre)
-        out["centre_of_mass"] = compare(learned.inertia.com.detach().double().flatten(), truth.inertia.com.flatten())
+    out |= inertia_items(learned.inertia, truth.inertia)
     # (at the first frames of up to 64 chunks)
     out["inertia"] = inertia_spread(task.system, learned.inertia, truth.inertia, chunk_x[:64, 0].detach())
     if isinstance(learned.potential, LearnedGravity):
@@ -175,6 +171,18 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noi
     out["collisions"] = counts["collisions"].tolist()
     out["collisions_slipping"] = counts["slipping"].tolist()
     out["collisions_bound"] = counts["bound"].tolist()
+    return out
+
+
+def inertia_items(learned: Inertia, truth: Inertia) -> dict:
+    """``{"moments"[, "centre_of_mass"]}`` of a learned inertia against the true one (``compare``), where the bodies
+    have moments (extended bodies: m² per unit mass) and a centre of mass off their first point (the box: m, body
+    frame, from its centre)."""
+    out = {}
+    if truth.moments.numel():
+        out["moments"] = compare(learned.moments.detach().double().flatten(), truth.moments.double().flatten())
+    if truth.com is not None and learned.com is not None:
+        out["centre_of_mass"] = compare(learned.com.detach().double().flatten(), truth.com.double().flatten())
     return out
 
 
@@ -193,7 +201,8 @@ def against_nominal(summary: dict) -> dict:
 
 
 def baseline_summary(net, task, chunk_x: torch.Tensor) -> dict:
-    """What a baseline learned (``learned.json``): ``{"model", "weights"[, "mass_ratio"[, "moments"]], "inertia"}``.
+    """What a baseline learned (``learned.json``): ``{"model", "weights"[, "mass_ratio"[, "moments"[,
+    "centre_of_mass"]]], "inertia"}``.
 
     The inertia parts (as in :func:`learned_summary`) where the baseline has a learned CLNN (MLP-CD-CLNN,
     IN-CP-CLNN); no μ or e (the baselines do not learn them: IN-CP-* are given the true ones).  IN-CP-SP learns no
@@ -207,9 +216,6 @@ def baseline_summary(net, task, chunk_x: torch.Tensor) -> dict:
         return out
     m_learned, m_true = learned.inertia.masses.detach().double(), truth.inertia.masses.double()
     out["mass_ratio"] = compare(m_learned / m_learned[0], m_true / m_true[0])
-    if truth.inertia.moments.numel():
-        out["moments"] = compare(
-            learned.inertia.moments.detach().double().flatten(), truth.inertia.moments.double().flatten()
-        )
+    out |= inertia_items(learned.inertia, truth.inertia)
     out["inertia"] = inertia_spread(task.system, learned.inertia, truth.inertia, chunk_x[:64, 0].detach())
     return out
