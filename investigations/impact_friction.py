@@ -12,7 +12,8 @@ option.
         --moments-scale 1.37 --com 0 0 0.007          # as the models that learn the centre of mass
 
 The output holds each toss's position error (``per_toss_position_error``), so that two settings are compared toss by
-toss: ``python investigations/com_offset.py --paired A.json B.json``.
+toss: ``python investigations/com_offset.py --paired A.json B.json``, and the signed error along each toss's travel
+(``travel_bias``, as ``investigations/travel_bias.py`` computes it from an evaluation).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import argparse
 import json
 
 import torch
+from travel_bias import travel_bias  # (this folder's script: run as python investigations/impact_friction.py)
 
 from diffcontact.eval.pose_metrics import per_toss_position_error
 from diffcontact.eval.tosses import predict_tosses, recorded_tosses, score_tosses
@@ -74,7 +76,12 @@ def main() -> None:
     tosses, request = recorded_tosses(args.data, args.split)
     half = request["half_extents_m"]
     per_toss = per_toss_position_error(predicted["position"], tosses.position, tosses.offsets, half)
-    result = {"settings": vars(args), "metrics": metrics, "per_toss_position_error": per_toss.tolist()}
+    result = {
+        "settings": vars(args),
+        "metrics": metrics,
+        "per_toss_position_error": per_toss.tolist(),
+        "travel_bias": travel_bias(predicted, tosses, 2.0 * float(half[0])),
+    }
     print(json.dumps(result, indent=1))
 
 

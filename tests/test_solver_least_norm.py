@@ -486,3 +486,36 @@ def test_a_flat_problem_whose_first_solve_fails_is_solved_with_curvature_on_its_
     assert all(bool(torch.isfinite(t.grad).all()) for t in ins)
     scale = float(plain[49].abs().max().clamp_min(1.0))
     assert float((f[49].detach() - plain[49]).abs().max()) <= 1e-5 * scale
+
+
+def test_a_sliding_face_at_a_tiny_lower_bound_is_solved_with_more_curvature():
+    """The restitution problem of a cube sliding flat on the table (4 corners, A of rank 6: six flat directions),
+    rolled out by a model that learned e = 3e-7: its lower bounds 4e-8 cut the cones' apexes.  The first solve
+    stalls at a residual of 2.6e-6 (MAX_ITER), and so does the solve with curvature 1e-12 on the flat directions;
+    it failed a whole evaluation of the real cube tosses.  With the curvature raised to 1e-9 it converges: the
+    velocity change and objective of the reference layer (whose natural residual here is 6e-9; the two-stage
+    Clarabel reference's is 4e-6, its velocities 2e-7 off), the least norm of the two-stage reference, inside the
+    cones and above the bounds, with finite gradients."""
+    from pathlib import Path
+
+    from diffcontact.solver.reference import solve_cone_qp_reference
+
+    data = np.load(Path(__file__).parent / "data" / "sliding_face_lower_bound.npz")
+    A, q, mu, lower, active = (torch.from_numpy(data[k])[None] for k in ("A", "q", "mu", "lower", "active"))
+    f, info = solve_cone_qp(A, q, mu, lower, active, return_info=True)
+    assert info.status.tolist() == [Status.CONVERGED]
+    fb, lb, mub, Ab, qb = f[0].numpy(), lower[0].numpy(), mu[0].numpy(), A[0].numpy(), q[0].numpy()
+    r = solve_cone_qp_reference(A, q, mu, lower, active)[0].numpy()
+    assert np.abs(Ab @ (fb - r)).max() <= 1e-6 * np.abs(qb).max()  # the same velocity change (measured 2.6e-9)
+    objective = lambda x: 0.5 * x @ Ab @ x + qb @ x  # noqa: E731
+    assert abs(objective(fb) - objective(r)) <= 1e-5 * abs(objective(r))  # (measured 5e-7)
+    fk = fb.reshape(4, 3)
+    assert (fk[:, 0] >= lb - 1e-12).all() and (mub * fk[:, 0] - np.linalg.norm(fk[:, 1:], axis=1) >= -1e-9).all()
+    Ap, qp = _projected(Ab, qb)
+    f_min = clarabel_min_norm(Ap, qp, mub, lb, 3, clarabel_solve(Ap, qp, mub, lb, 3)[0])
+    assert np.linalg.norm(fb) <= np.linalg.norm(f_min) * (1 + 1e-5)  # (the reference layer's: 1.29 times)
+    ins = [t.clone().requires_grad_() for t in (A, q, mu, lower)]
+    f_g, info_g = solve_cone_qp(*ins, active, return_info=True)
+    assert info_g.status.tolist() == [Status.CONVERGED]
+    f_g.pow(2).sum().backward()
+    assert all(bool(torch.isfinite(t.grad).all()) for t in ins)

@@ -127,7 +127,8 @@ def test_every_threshold_is_the_policys_and_docs_solver_md_lists_them_all():
         (problem, "IPM_TOL"): "ipm_tol", (problem, "ROUNDING_TOL"): "rounding_tol", (problem, "POLISH_STEPS"):
         "polish_steps", (problem, "POLISH_RETRY_STEPS"): "polish_retry_steps",
         (problem, "START_MARGIN"): "start_margin", (problem, "ROBUST_MARGIN"): "robust_margin",
-        (problem, "FAR"): "far", (problem, "TIKHONOV"): "tikhonov", (problem, "MU_CAP"): "mu_cap",
+        (problem, "FAR"): "far", (problem, "TIKHONOV"): "tikhonov",
+        (problem, "TIKHONOV_MAX"): "tikhonov_max", (problem, "MU_CAP"): "mu_cap",
         (problem, "MU_MAX"): "mu_max", (least_norm, "Q_TOL"): "q_tol", (least_norm, "UNIQUE_TOL"): "unique_tol",
         (least_norm, "RHO"): "alm_rho", (least_norm, "RHO_MAX"): "alm_rho_max", (least_norm, "ALM_STEPS"): "alm_steps",
         (least_norm, "ALM_TOL"): "alm_tol", (least_norm, "ALM_ACCEPT"): "alm_accept",

@@ -40,6 +40,8 @@ class SolverPolicy:
     # rows 1e5 times apart a real eigenvalue is 9e-7 × it; the stress cases' rounding, absolute, 1e-9 × it)
     far: float = 1e3  # a minimiser farther than this × its range part is solved again for the least-norm one
     tikhonov: float = 1e-12  # ... with this curvature (relative) on its flat directions
+    tikhonov_max: float = 1e-9  # ... raised 1000 times where that solve fails too, up to this (a sliding face at a
+    # lower bound 4e-8 that cuts its cones' apexes failed at 1e-12 and converged at 1e-9)
     q_tol: float = 0.1  # up to this, drift of the constraint velocities is dropped where a flat direction enters a cone
     unique_tol: float = 1e-6  # a set of minimisers narrower than this is a point (rounding alone opens ~1e-8)
     alm_rho: float = 1e4  # the augmented Lagrangian stage (several flat directions): penalty, relative to the Hessian

@@ -32,7 +32,7 @@ from diffcontact.solver.status import Status, is_failure
 IPM_TOL, ROUNDING_TOL, POLISH_STEPS = POLICY.ipm_tol, POLICY.rounding_tol, POLICY.polish_steps
 POLISH_RETRY_STEPS = POLICY.polish_retry_steps
 START_MARGIN, ROBUST_MARGIN = POLICY.start_margin, POLICY.robust_margin
-FAR, TIKHONOV, MU_CAP = POLICY.far, POLICY.tikhonov, POLICY.mu_cap
+FAR, TIKHONOV, TIKHONOV_MAX, MU_CAP = POLICY.far, POLICY.tikhonov, POLICY.tikhonov_max, POLICY.mu_cap
 # (plain ints: an IntEnum member costs a µs per access in Python 3.11)
 _CONVERGED, _INACCURATE, _MAX_ITER = int(Status.CONVERGED), int(Status.INACCURATE), int(Status.MAX_ITER)
 _NUMERICAL = int(Status.NUMERICAL)
@@ -715,19 +715,29 @@ def _near_least_norm(qp: ConeQP, flats, f: torch.Tensor, first, opts: SolveOptio
     far[flats.consistent] = (x.abs().amax(-1) > FAR * range_part.abs().amax(-1)) | failed
     if not far.any():
         return f
-    rows = flats.idx[far]
     assert qp.lower is not None and qp.active is not None  # (``solve_cone_qp`` made them)
-    A_t = qp.A[rows] + (TIKHONOV * flats.ref[far])[:, None, None] * flats.PiN[far]
-    curved = ConeQP(A_t, qp.q[rows], qp.mu[rows], qp.lower[rows], qp.active[rows], qp.d)
-    again, result = _solve_with_retries(curved, opts.counting())  # (a failure keeps the first answer: never raised)
-    ok = ~is_failure(result.status)
-    rows_ok = rows[torch.from_numpy(ok)].numpy()
-    # (a first solve that failed takes this one's status: ill-conditioned along its flat directions, it can fail
-    # where the problem with the curvature does not)
-    was_failed = is_failure(status[rows_ok])
-    status[rows_ok] = np.where(was_failed, result.status[ok], np.maximum(status[rows_ok], result.status[ok]))
-    first.residual[rows_ok[was_failed]] = result.residual[ok][was_failed]
-    return f.index_copy(0, torch.from_numpy(rows_ok), again[torch.from_numpy(ok)].to(f.dtype))
+    curvature = TIKHONOV
+    while True:
+        rows = flats.idx[far]
+        A_t = qp.A[rows] + (curvature * flats.ref[far])[:, None, None] * flats.PiN[far]
+        curved = ConeQP(A_t, qp.q[rows], qp.mu[rows], qp.lower[rows], qp.active[rows], qp.d)
+        again, result = _solve_with_retries(curved, opts.counting())  # (a failure keeps the first answer)
+        ok = ~is_failure(result.status)
+        rows_ok = rows[torch.from_numpy(ok)].numpy()
+        # (a first solve that failed takes this one's status: ill-conditioned along its flat directions, it can
+        # fail where the problem with the curvature does not)
+        was_failed = is_failure(status[rows_ok])
+        status[rows_ok] = np.where(was_failed, result.status[ok], np.maximum(status[rows_ok], result.status[ok]))
+        first.residual[rows_ok[was_failed]] = result.residual[ok][was_failed]
+        f = f.index_copy(0, torch.from_numpy(rows_ok), again[torch.from_numpy(ok)].to(f.dtype))
+        # (where the curved solve failed too, and so the first: once more with a curvature 1000 times larger, up to
+        # TIKHONOV_MAX, which keeps the range part to that relative accuracy; minimum_norm then moves the answer)
+        still = torch.zeros_like(far)
+        still[far] = torch.from_numpy(~ok & is_failure(status[rows.numpy()]))
+        curvature *= 1e3
+        if not still.any() or curvature > TIKHONOV_MAX:
+            return f
+        far = still
 
 
 def _cone_qp(qp: ConeQP, opts: SolveOptions):
