@@ -45,6 +45,9 @@ def test_cube_tosses_recorded_imported_and_learned(tmp_path, com):
     # imported tosses are measured: the task's values are nominal, not a truth the summary could score against
     assert learned["mu"]["nominal"] == [pytest.approx(0.18)] and "true" not in learned["mu"]
     assert "max_abs_error" not in learned["e"] and learned["inertia"]["against"] == "nominal"
+    # μ calibrated on the whole training tosses after the epochs (train/calibrate.py), as learned.json records
+    calibration = learned["calibration"]
+    assert calibration["mu"] == learned["mu"]["learned"] and len(calibration["train_objective"]) >= 3
     # the evaluation of the run's test tosses carries what it learned, the centre of mass included
     from diffcontact.eval.evaluate import evaluate_run
 

@@ -36,6 +36,7 @@ LAST_CHECKPOINT = "last.ckpt"
 BEST_PREFIX = "best-"
 BEST_CHECKPOINT = BEST_PREFIX + "{epoch}"  # (Lightning's file name template: best-epoch=E.ckpt)
 REFINED_PREFIX = "refined-"  # (the best checkpoint with μ and e refined: refined-best-epoch=E.ckpt)
+CALIBRATED_PREFIX = "calibrated-"  # (... and μ calibrated on whole measured tosses: calibrated-[refined-]best-…)
 SOLVER_FAILURES = "solver_failures.npz"
 LOGS = "logs"
 CSV_LOGS = "csv"

@@ -7,6 +7,7 @@ table). Errors are averaged over the frames of each toss, then over tosses, so t
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -89,6 +90,18 @@ def box_toss_metrics(
         "position_error_pct_same_face": float(per_toss[same].mean()) if same.any() else None,
         "position_error_pct_other_face": float(per_toss[~same].mean()) if not same.all() else None,
     }
+
+
+#: The rotation error's weight in :func:`toss_objective`: the arc a face centre moves through per degree, in % of the
+#: width (100 · h θ / 2h per rad).
+ROTATION_WEIGHT = 50.0 * math.pi / 180.0
+TOSS_OBJECTIVE = "position_error_pct + rotation_weight * rotation_error_deg"
+
+
+def toss_objective(metrics: dict[str, Any]) -> float:
+    """What a fit to whole tosses minimises, in % of the box's width: ``metrics``' (``box_toss_metrics``) position
+    error plus ROTATION_WEIGHT times its rotation error; the peers' fits and the calibration of μ use it."""
+    return float(metrics["position_error_pct"] + ROTATION_WEIGHT * metrics["rotation_error_deg"])
 
 
 def per_toss_position_error(position_hat: np.ndarray, position: np.ndarray, offsets: np.ndarray, half_extents):

@@ -29,13 +29,12 @@ import numpy as np
 from diffcontact.data.measured import with_first_states
 from diffcontact.data.tosses import Tosses, read_tosses, resting_table_height, split_tosses, training_subset
 from diffcontact.errors import ConfigError
-from diffcontact.eval.pose_metrics import box_toss_metrics
+from diffcontact.eval.pose_metrics import ROTATION_WEIGHT, TOSS_OBJECTIVE, box_toss_metrics, toss_objective
 from diffcontact.files import save_arrays, versions, write_json
 from diffcontact.peers import ENGINES, load_engine, require
 from diffcontact.peers.cube import COM_PARAMETERS, GRAVITY, HALF_EXTENT, INERTIA, MASS, SUBSTEPS, Param, nominal
 from diffcontact.run_dir import METRICS, PREDICTIONS
 
-ROTATION_WEIGHT = 50.0 * math.pi / 180.0  # % of the width per degree
 FAILED = 1e3  # objective of a rollout that is not finite
 SIGMA0 = 0.25  # CMA-ES's initial step, in fractions of each range
 DEFAULT_BUDGET = 600  # objective evaluations
@@ -59,7 +58,7 @@ def _metrics(tosses: Tosses, position: np.ndarray, quaternion: np.ndarray, table
     m = box_toss_metrics(
         position, quaternion, tosses.position, tosses.quaternion, tosses.offsets, [HALF_EXTENT] * 3, table_height
     )
-    return m | {"objective": m["position_error_pct"] + ROTATION_WEIGHT * m["rotation_error_deg"]}
+    return m | {"objective": toss_objective(m)}
 
 
 def fit_parameters(
@@ -180,7 +179,7 @@ def run_fit(
         "table_height_m": table_height,
         "table_height_iqr_m": table_iqr,
         "table_height_from": f"resting frames of the training split ({len(parts['train'])} tosses)",
-        "objective": "position_error_pct + rotation_weight * rotation_error_deg",
+        "objective": TOSS_OBJECTIVE,
         "rotation_weight": ROTATION_WEIGHT,
         "seed": seed,
         "initial_twist": twist,

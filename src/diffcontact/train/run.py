@@ -23,13 +23,15 @@ from diffcontact.config import TaskConfig, load_task
 from diffcontact.data.noise import noise_kind
 from diffcontact.data.store import load_meta
 from diffcontact.errors import ConfigError
+from diffcontact.eval.tosses import measured
 from diffcontact.files import TMP_PREFIX, atomic_write, save_figure, versions, write_json
 from diffcontact.lock import output_lock
 from diffcontact.models import BASELINE_NAMES, MODEL_NAMES
-from diffcontact.run_dir import BEST_CHECKPOINT, REFINED_PREFIX, RunDir
+from diffcontact.run_dir import BEST_CHECKPOINT, CALIBRATED_PREFIX, REFINED_PREFIX, RunDir
 from diffcontact.solver.contact_solver import load_failed, save_failed
 from diffcontact.systems.base import System
 from diffcontact.systems.registry import build_task
+from diffcontact.train.calibrate import calibrate_mu
 from diffcontact.train.coef_start import scan_coefficients
 from diffcontact.train.config import TrainConfig, check_given, task_training
 from diffcontact.train.datamodule import ContactDataModule
@@ -394,10 +396,12 @@ def _finished(run: RunDir, module, trainer: pl.Trainer, best: str, data, process
     train = chosen.as_fitted("train", split.chunk_x, split.chunk_v)
     val, write = data.splits["val"], trainer.is_global_zero
     refined, best = _refined(chosen, train, val, best, run.checkpoints, noise, write=write)
+    calibrated, best = _calibrated(chosen, data.folder, best, run.checkpoints, write=write)
     summary = _summary(chosen, train, data, run) | {"best_checkpoint": best} | _counters(trainer, totals, processes)
     summary["solver_failures_after_training"] = dict(Counter(chosen.solver.failures_by_status) - failed_before)
     failed = module.solver.failed + (chosen.solver.failed if chosen is not module else [])
-    return summary | ({"refinement": refined} if refined else {}), failed
+    summary |= {"refinement": refined} if refined else {}
+    return summary | ({"calibration": calibrated} if calibrated else {}), failed
 
 
 def _refined(
@@ -429,13 +433,32 @@ def _refined(
     record |= {"kept": True, "seconds": time.perf_counter() - started}
     if not record["iterations"]:
         return record, best
-    path = folder / f"{REFINED_PREFIX}{Path(best).name}"
+    return record, _save_coefficients(best, learned, folder, write, REFINED_PREFIX)
+
+
+def _calibrated(chosen: ContactLightningModule, data: Path, best: str, folder: Path, write: bool) -> tuple[dict, str]:
+    """The chosen checkpoint's μ calibrated on the whole tosses of a measured dataset ``data``
+    (``calibrate.calibrate_mu``) and, where kept, saved as ``_save_coefficients`` does.  Returns the calibration's
+    record ({} for a dataset that is not measured or a model without a learned, projected μ) and the checkpoint."""
+    learned = chosen.learned
+    if not measured(data) or not chosen.learns_contacts or not best or learned is None:
+        return {}, best
+    if learned.mu_transform != "projected":  # (μ is not its raw parameter: the factor would not scale it)
+        return {}, best
+    record = calibrate_mu(chosen.net, learned.mu_raw, data)
+    return record, _save_coefficients(best, learned, folder, write, CALIBRATED_PREFIX) if record["kept"] else best
+
+
+def _save_coefficients(best: str, learned, folder: Path, write: bool, prefix: str) -> str:
+    """The checkpoint ``best`` with the μ and e of ``learned`` (LearnedParams) in place of its own, saved as
+    ``folder``/PREFIX-NAME (``write``: this process writes it).  Returns its path."""
+    path = folder / f"{prefix}{Path(best).name}"
     if write:
         checkpoint = torch.load(best, map_location="cpu", weights_only=False)
         for key in ("mu_raw", "e_raw"):
             checkpoint["state_dict"][f"net.params.{key}"] = getattr(learned, key).detach().clone()
         atomic_write(path, lambda fh: torch.save(checkpoint, fh))
-    return record, str(path)
+    return str(path)
 
 
 def _settings(
@@ -616,11 +639,17 @@ def summarize_run(run: str | Path) -> dict:
         refined, old["best_checkpoint"] = _refined(
             chosen, train, val, str(best), run_dir.checkpoints, recorded_noise(folder), write=True
         )
+    calibrated = {}
+    if "calibration" not in old:  # (a run trained before the calibration: calibrated now, as training does)
+        calibrated, old["best_checkpoint"] = _calibrated(
+            chosen, folder, str(old.get("best_checkpoint") or best), run_dir.checkpoints, write=True
+        )
     fresh = learned_summary(chosen.net, chosen.task, *train, recorded_noise(folder))
     if load_meta(folder)["request"].get("measured"):
         fresh = against_nominal(fresh)
     kept = {k: v for k, v in old.items() if k not in fresh and not k.startswith("collisions")}
     summary = {**fresh, **kept} | ({"refinement": refined} if refined else {})
+    summary |= {"calibration": calibrated} if calibrated else {}
     summary["solver_failures_after_training"] = dict(Counter(chosen.solver.failures_by_status) - failed_before)
     if _save_failed(run_dir, chosen.solver.failed):
         summary["solver_failures_saved"] = run_dir.solver_failures.name
