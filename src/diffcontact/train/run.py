@@ -634,16 +634,14 @@ def summarize_run(run: str | Path) -> dict:
     dtype, folder = getattr(torch, args.get("dtype", "float32")), dataset_folder(args["data_root"], config.name)
     train_split, val = (load_split(folder, name, config, dtype=dtype) for name in ("train", "val"))
     train = chosen.as_fitted("train", train_split.chunk_x, train_split.chunk_v)
-    refined, failed_before = {}, Counter(chosen.solver.failures_by_status)
+    refined, calibrated, failed_before = {}, {}, Counter(chosen.solver.failures_by_status)
+    current = str(best)
     if "refinement" not in old:  # (a run trained before the refinement: refined now, as training does)
-        refined, old["best_checkpoint"] = _refined(
-            chosen, train, val, str(best), run_dir.checkpoints, recorded_noise(folder), write=True
-        )
-    calibrated = {}
+        refined, current = _refined(chosen, train, val, current, run_dir.checkpoints, recorded_noise(folder), True)
     if "calibration" not in old:  # (a run trained before the calibration: calibrated now, as training does)
-        calibrated, old["best_checkpoint"] = _calibrated(
-            chosen, folder, str(old.get("best_checkpoint") or best), run_dir.checkpoints, write=True
-        )
+        calibrated, current = _calibrated(chosen, folder, current, run_dir.checkpoints, write=True)
+    if current != str(best):
+        old["best_checkpoint"] = current
     fresh = learned_summary(chosen.net, chosen.task, *train, recorded_noise(folder))
     if load_meta(folder)["request"].get("measured"):
         fresh = against_nominal(fresh)
