@@ -50,4 +50,4 @@ def test_calibrate_mu_finds_the_true_mu_of_simulated_tosses(tmp_path):
     assert record["kept"] and abs(float(mu[0]) - 0.18) <= 0.003, record
     assert record["mu"] == mu.tolist() and record["mu_trained"] == [pytest.approx(0.1908)]
     assert record["val_objective_after"] <= record["val_objective_before"]
-    assert len(record["train_objective"]) <= MAX_EVALUATIONS and net.training
+    assert len(record["train_objective"]) <= MAX_EVALUATIONS and net.training and record["diverged_tosses"] == {}

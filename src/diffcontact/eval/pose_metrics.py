@@ -100,7 +100,7 @@ TOSS_OBJECTIVE = "position_error_pct + rotation_weight * rotation_error_deg"
 
 def toss_objective(metrics: dict[str, Any]) -> float:
     """What a fit to whole tosses minimises, in % of the box's width: ``metrics``' (``box_toss_metrics``) position
-    error plus ROTATION_WEIGHT times its rotation error; the peers' fits and the calibration of μ use it."""
+    error plus ROTATION_WEIGHT times its rotation error: what the peers' fits minimise."""
     return float(metrics["position_error_pct"] + ROTATION_WEIGHT * metrics["rotation_error_deg"])
 
 

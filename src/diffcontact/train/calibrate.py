@@ -60,13 +60,20 @@ def line_search(
     return min(values, key=values.__getitem__), values
 
 
-def _objective_on(net: nn.Module, mu_raw: torch.Tensor, trained: torch.Tensor, folder: Path, split: str):
-    """objective(s): the ``OBJECTIVE`` of ``net`` on the whole tosses of ``split`` with μ = s × ``trained``."""
+def _objective_on(
+    net: nn.Module, mu_raw: torch.Tensor, trained: torch.Tensor, folder: Path, split: str, diverged: dict
+):
+    """objective(s): the ``OBJECTIVE`` of ``net`` on the whole tosses of ``split`` with μ = s × ``trained``; the
+    number of tosses whose rollout diverged (held at their last finite frame, as ``evaluate`` holds them) goes into
+    ``diverged``["split s"] where there are any."""
 
     def objective(s: float) -> float:
         with torch.no_grad():
             mu_raw.copy_(trained * s)
-        return float(score_tosses(predict_tosses(net, folder, split), folder, split)[OBJECTIVE])
+        predicted = predict_tosses(net, folder, split)
+        if predicted["diverged"]:
+            diverged[f"{split} {s:.6f}"] = len(predicted["diverged"])
+        return float(score_tosses(predicted, folder, split)[OBJECTIVE])
 
     return objective
 
@@ -83,8 +90,9 @@ def calibrate_mu(net: nn.Module, mu_raw: torch.Tensor, folder: str | Path) -> di
     was_training = net.training
     net.eval()
     try:
-        factor, tried = line_search(_objective_on(net, mu_raw, trained, folder, "train"))
-        val = _objective_on(net, mu_raw, trained, folder, "val")
+        diverged: dict[str, int] = {}
+        factor, tried = line_search(_objective_on(net, mu_raw, trained, folder, "train", diverged))
+        val = _objective_on(net, mu_raw, trained, folder, "val", diverged)
         before, after = val(1.0), val(factor) if factor != 1.0 else None
         kept = after is not None and after <= before
         with torch.no_grad():
@@ -100,5 +108,6 @@ def calibrate_mu(net: nn.Module, mu_raw: torch.Tensor, folder: str | Path) -> di
         "train_objective": {f"{s:.6f}": v for s, v in sorted(tried.items())},
         "val_objective_before": before,
         "val_objective_after": after,
+        "diverged_tosses": diverged,  # ({"split factor": tosses} of the rollouts that left the finite numbers)
         "seconds": time.perf_counter() - started,
     }
