@@ -31,6 +31,13 @@ def test_the_sweep_runs_its_cells_resumes_and_tabulates(tmp_path):
     stamp = (out / "runs" / "nominal" / "eval" / "metrics.json").stat().st_mtime_ns
     again = CliRunner().invoke(app, args)  # (resumes: every cell is read, none run again)
     assert again.exit_code == 0 and (out / "runs" / "nominal" / "eval" / "metrics.json").stat().st_mtime_ns == stamp
+    tables = CliRunner().invoke(app, [*args[:9], "-n", "16", "-m", "nominal,CM-CD-CLNN", "--tables"])
+    assert tables.exit_code == 0, tables.output  # (runs nothing, imports nothing: the tables of what is scored)
+    assert "3 cells not scored yet: N4 CM-CD-CLNN, N8 CM-CD-CLNN, N16 CM-CD-CLNN" in tables.output
+    assert not (out / "runs" / "N4").exists() and not (out / "data" / "N16").exists()
+    record = json.loads((out / "sweep.json").read_text())
+    assert record["table"]["CM-CD-CLNN"] == {} and record["table"]["nominal"]["16"] == cells["4"]
+    assert len(record["cells_not_scored"]) == 3 and "| CM-CD-CLNN | – | – | – |" in (out / "sweep.md").read_text()
     bad = CliRunner().invoke(app, [*args[:5], "-m", "drake"])
     assert bad.exit_code == 2 and "unknown methods ['drake']" in bad.output
     # the exact model set against each method toss by toss: here a "model" that predicts the recorded poses exactly

@@ -676,6 +676,9 @@ def bench_tosses(
     partition: str = PARTITION,
     time_min: int = TIME_MIN,
     threads: int = RUN_THREADS,
+    tables_only: bool = typer.Option(
+        False, "--tables", help="Run nothing: write the tables of the cells scored so far (while the sweep runs)."
+    ),
 ) -> None:
     """The training-size sweep on measured tosses: every method at N training tosses, scored on the same test
     tosses; writes sweep.md, sweep.json and sweep.png (resumes where it stopped)."""
@@ -690,7 +693,8 @@ def bench_tosses(
     with _user_errors():
         toss_sweep(
             source, out, sizes=tuple(sizes), methods=chosen, seed=seed, epochs=epochs, jobs=jobs, threads=per_run,
-            backend=Backend(backend, address=address, partition=partition, time_min=time_min), echo=typer.echo,
+            backend=Backend(backend, address=address, partition=partition, time_min=time_min),
+            tables_only=tables_only, echo=typer.echo,
         )  # fmt: skip
     typer.echo(f"-> {out}/sweep.md")
 

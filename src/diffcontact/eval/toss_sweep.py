@@ -47,6 +47,12 @@ def _dataset(source, out: Path, n: int | None, seed: int, split, task: str) -> P
     return folder
 
 
+def _imported(out: Path, n: int | None, task: str) -> Path | None:
+    """The dataset of N training tosses if the sweep has imported it, else None."""
+    folder = out / "data" / (f"N{n}" if n else "all") / task
+    return folder if (folder / "meta.json").is_file() else None
+
+
 def _folders(out: Path, method: str, n: int | None) -> tuple[Path, Path]:
     """Where a method's cell at N lives: its run (or fit) folder, and the folder of its metrics.json and
     predictions.npz (a run's eval/, a peer's own folder)."""
@@ -101,31 +107,43 @@ def toss_sweep(
     jobs: int = 1,
     threads: int = 1,
     backend: Backend | None = None,
+    tables_only: bool = False,
     echo=print,
 ) -> dict:
     """Run (or resume) the sweep into ``out`` and write ``out``/sweep.json, sweep.md (the tables) and sweep.png
     (position error against N, one line per method). ``sizes``: numbers of training tosses (0: all of the split's);
     ``epochs``: training epochs (default: the task's); ``jobs`` cells at a time, the trained ones on ``backend``
     (default: this machine) with ``threads`` threads each. A cell that fails leaves the others running; the tables
-    are written with it marked, then DiffContactError names it. Returns the table {method: {N: metrics}}."""
+    are written with it marked, then DiffContactError names it. ``tables_only``: run nothing (no import either),
+    write the tables of the cells scored so far, "–" for the others (while the sweep runs, or after it stopped).
+    Returns the table {method: {N: metrics}}."""
     from diffcontact.eval.backends import cell_runner
 
     out = Path(out)
-    folders = {n: _dataset(source, out, n or None, seed, split, task) for n in sizes}
+    folders: dict[int, Path | None] = {
+        n: _imported(out, n or None, task) if tables_only else _dataset(source, out, n or None, seed, split, task)
+        for n in sizes
+    }
     todo: dict[Path, tuple[int, str]] = {}  # (by the folder it writes: the nominal cell serves every N)
     for n in sizes:
         for method in methods:
             scored = _folders(out, method, n or None)[1]
             if not (scored / METRICS_FILE).is_file():
                 todo.setdefault(scored, (n, method))
+    unscored = [f"N{n or 'all'} {m}" for n, m in todo.values()]
+    if tables_only:
+        if unscored:
+            echo(f"{len(unscored)} cells not scored yet: " + ", ".join(unscored))
+        todo = {}
     run_cell = cell_runner(backend or Backend(), out, threads)
     failed: dict[str, str] = {}
 
     def job(n: int, method: str) -> None:
         label = f"N{n or 'all'} {method}"
-        started = time.perf_counter()
+        started, folder = time.perf_counter(), folders[n]
+        assert folder is not None  # (imported above: cells run only without tables_only)
         try:
-            _cell(source, out, method, n or None, folders[n], seed, split, epochs, task, run_cell)
+            _cell(source, out, method, n or None, folder, seed, split, epochs, task, run_cell)
         except Exception as err:  # (a failed cell, or a cluster's job lost: the other cells go on)
             failed[label] = f"{type(err).__name__}: {err}"
             echo(f"{label}: failed ({failed[label]})")
@@ -149,10 +167,12 @@ def toss_sweep(
             if metrics.is_file():
                 table[method][key] = _fitted(json.loads(metrics.read_text()))
                 done.add(method)
-        if REFERENCE in done:
-            for method, difference in _paired(out, folders[n], sorted(done), n or None).items():
+        folder = folders[n]
+        if REFERENCE in done and folder is not None:
+            for method, difference in _paired(out, folder, sorted(done), n or None).items():
                 paired[method][key] = difference
     record = {"source": str(source), "seed": seed, "split": list(split), "sizes": list(sizes), "epochs": epochs}
+    record["cells_not_scored"] = unscored if tables_only else []
     write_json(
         out / "sweep.json", {"table": table, "paired": paired, "failed": failed, **record, "versions": versions()}
     )
