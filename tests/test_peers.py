@@ -106,6 +106,23 @@ def test_cube_dropped_flat_settles_on_the_table(name):
     assert rotation_angle(quaternion[-30:], quaternion[-1:].repeat(30, 0)).max() < REST_TOL / HALF_EXTENT
 
 
+def test_a_rollout_the_engine_loses_is_not_returned_as_poses(name):
+    engine = _engine(name)
+    if name != "mujoco":
+        pytest.skip("MuJoCo resets an unstable simulation and goes on; the others' states show the failure")
+    ok = _state([0.0, 0.0, 0.3], [1, 0, 0, 0], [0.5, 0, 0], [0, 2, 0])
+    lost = _state([0.0, 0.0, 0.3], [1, 0, 0, 0], [1e160, 0, 0], [0, 2, 0])  # (an acceleration MuJoCo calls unstable)
+    tosses = _tosses([ok, lost, ok], [20, 20, 20])
+    position, quaternion = engine.simulate(tosses, nominal(engine.PARAMETERS), TABLE)
+    for i in (0, 2):  # (the tosses beside it are unaffected)
+        assert np.isfinite(position[tosses.frames_of(i)]).all() and np.isfinite(quaternion[tosses.frames_of(i)]).all()
+    np.testing.assert_array_equal(position[tosses.frames_of(0)], position[tosses.frames_of(2)])
+    rows = tosses.frames_of(1)
+    assert np.isfinite(position[rows.start]).all()  # (frame 0: the recorded pose)
+    later = slice(rows.start + 1, rows.stop)
+    assert np.isnan(position[later]).all() and np.isnan(quaternion[later]).all()
+
+
 def _com(offset) -> dict[str, float]:
     return dict(zip(COM_NAMES, map(float, offset)))
 
@@ -228,6 +245,29 @@ def test_fit_command_writes_its_files(name, tmp_path):
     assert bad.exit_code == 2 and "train_tosses = 7 is not in [1, 6]" in bad.output
     bad = CliRunner().invoke(app, [*args, "--twist", "filtered"])
     assert bad.exit_code == 2 and "twist = 'filtered' is not one of fitted, recorded, poses" in bad.output
+
+
+def test_a_fit_whose_test_rollouts_the_engine_loses_says_so_and_writes_nothing(name, tmp_path, monkeypatch):
+    engine = _engine(name)
+    pytest.importorskip("cma")
+    from typer.testing import CliRunner
+
+    from diffcontact.cli import app
+
+    simulate = engine.simulate
+
+    def lose(tosses, params, table):  # (an engine that loses every rollout after its first frame)
+        position, quaternion = simulate(tosses, params, table)
+        later = np.ones(len(position), bool)
+        later[tosses.offsets[:-1]] = False
+        return np.where(later[:, None], np.nan, position), quaternion
+
+    monkeypatch.setattr(engine, "simulate", lose)
+    source, out = tmp_path / "tosses.npz", tmp_path / "fit"
+    _npz(source)
+    result = CliRunner().invoke(app, ["peers", "fit", name, str(source), "--out", str(out), "--budget", "2"])
+    assert result.exit_code == 2 and "rollouts of test tosses [" in result.output and "not finite" in result.output
+    assert not (out / "metrics.json").exists() and not (out / "predictions.npz").exists()
 
 
 def test_errors_name_the_engine_and_the_install(name, monkeypatch):

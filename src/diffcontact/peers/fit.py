@@ -28,7 +28,7 @@ import numpy as np
 
 from diffcontact.data.measured import with_first_states
 from diffcontact.data.tosses import Tosses, read_tosses, resting_table_height, split_tosses, training_subset
-from diffcontact.errors import ConfigError
+from diffcontact.errors import ConfigError, DiffContactError
 from diffcontact.eval.pose_metrics import ROTATION_WEIGHT, TOSS_OBJECTIVE, box_toss_metrics, toss_objective
 from diffcontact.files import save_arrays, versions, write_json
 from diffcontact.peers import ENGINES, load_engine, require
@@ -171,6 +171,12 @@ def run_fit(
     fit = fit_parameters(engine, train, table_height, budget, seed, echo, train_starts, space)
     start = nominal(engine.PARAMETERS)
     position, quaternion = engine.simulate(test_starts or test, fit["params"], table_height)
+    lost = [int(test.toss_id[i]) for i in range(test.n) if not np.isfinite(position[test.frames_of(i)]).all()]
+    if lost:
+        raise DiffContactError(
+            f"{engine_name}: the fitted parameters' rollouts of test tosses {lost} are not finite (the engine lost "
+            f"them: unstable); nothing written"
+        )
     metrics = {
         "engine": engine_name,
         "split": "test",

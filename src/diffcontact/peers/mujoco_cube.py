@@ -77,7 +77,8 @@ def _model(table_height: float, dt: float, params: dict[str, float]) -> MjModel:
 def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> tuple[np.ndarray, np.ndarray]:
     """Each toss rolled out from its first recorded frame for its length: position (F, 3) m, quaternion (F, 4)
     w, x, y, z, one row per recorded frame (frame 0 the recorded one). params: the names of ``PARAMETERS``, all
-    given, and of ``cube.COM_PARAMETERS`` (m), each 0 when absent; table_height: the table plane's z in m."""
+    given, and of ``cube.COM_PARAMETERS`` (m), each 0 when absent; table_height: the table plane's z in m. The frames
+    from where MuJoCo reset an unstable rollout on are NaN (a reset leaves finite states that are not the toss's)."""
     check_params(params, PARAMETERS + COM_PARAMETERS, ENGINE, optional=COM_NAMES)
     model = _model(table_height, tosses.dt, params)
     data = MjData(model)
@@ -93,8 +94,15 @@ def simulate(tosses: Tosses, params: dict[str, float], table_height: float) -> t
             mj_getState(model, data, start[j], _STATE)
         states = start[:, None]
         if frames > 1:
-            out, _ = rollout.rollout(model, data, start, nstep=(frames - 1) * SUBSTEPS)
+            nstep = (frames - 1) * SUBSTEPS
+            out, _ = rollout.rollout(model, data, start, nstep=nstep)
             out = cast(np.ndarray, out)  # (the states (B, nstep, size): mujoco types them as any array-like or None)
+            # MuJoCo resets an unstable simulation (a non-finite or huge acceleration) to the model's reference pose
+            # and goes on: finite states that are not the toss's. The reset sets the time back, so every step from
+            # the first whose time is not its own is unstable, and its frames are returned as NaN, not as poses.
+            h = model.opt.timestep
+            lost = np.logical_or.accumulate(np.abs(out[..., 0] - h * np.arange(1, nstep + 1)) > 0.5 * h, axis=1)
+            out = np.where(lost[..., None], np.nan, out)
             states = np.concatenate([states, out[:, SUBSTEPS - 1 :: SUBSTEPS]], axis=1)
         return states[..., 1:4], states[..., 4:8]
 
