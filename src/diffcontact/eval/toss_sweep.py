@@ -135,7 +135,7 @@ def toss_sweep(
         if unscored:
             echo(f"{len(unscored)} cells not scored yet: " + ", ".join(unscored))
         todo = {}
-    run_cell = cell_runner(backend or Backend(), out, threads)
+    run_cell = cell_runner(backend or Backend(), out, threads) if todo else None  # (--tables: no engine started)
     failed: dict[str, str] = {}
 
     def job(n: int, method: str) -> None:
