@@ -28,6 +28,8 @@ def test_the_sweep_runs_its_cells_resumes_and_tabulates(tmp_path):
     assert set(ids[0]["train"]) < set(ids[1]["train"]) and ids[0]["test"] == ids[1]["test"]
     table = (out / "sweep.md").read_text()
     assert "| nominal |" in table and "N = 4" in table and (out / "sweep.png").stat().st_size > 0
+    face = table.split("(`same_final_face`)")[1]  # (a count of tosses, as the cell's metrics.json has it)
+    assert f"| nominal | {cells['4']['same_final_face']} | {cells['4']['same_final_face']} |" in face
     stamp = (out / "runs" / "nominal" / "eval" / "metrics.json").stat().st_mtime_ns
     again = CliRunner().invoke(app, args)  # (resumes: every cell is read, none run again)
     assert again.exit_code == 0 and (out / "runs" / "nominal" / "eval" / "metrics.json").stat().st_mtime_ns == stamp

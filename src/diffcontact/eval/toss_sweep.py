@@ -27,7 +27,12 @@ SIZES = (8, 16, 32, 64, 128, 256)
 METHODS = ("CM-CD-CLNN", "CMr-CD-CLNN", "MLP-CD-CLNN", "IN-CP-CLNN", "mujoco", "bullet", "nominal")
 PEERS = ("mujoco", "bullet")
 REFERENCE = "CM-CD-CLNN"  # the method the others are set against, toss by toss
-METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
+METRICS = {
+    "position_error_pct": "position error (% of the width)",
+    "rotation_error_deg": "rotation error (degrees)",
+    "penetration_pct": "penetration (% of the width)",
+    "same_final_face": "test tosses whose last predicted frame rests on the recorded face",
+}
 
 
 def _dataset(source, out: Path, n: int | None, seed: int, split, task: str) -> Path:
@@ -209,11 +214,11 @@ def sweep_markdown(table: dict[str, dict[str, dict]], paired: dict[str, dict[str
         {k for cells in table.values() for k in cells}, key=lambda k: (k == "all", 0 if k == "all" else int(k))
     )
     lines = []
-    for metric in METRICS:
-        lines += [f"**{metric}**", "", "| method | " + " | ".join(f"N = {k}" for k in sizes) + " |"]
+    for metric, title in METRICS.items():
+        lines += [f"**{title}** (`{metric}`)", "", "| method | " + " | ".join(f"N = {k}" for k in sizes) + " |"]
         lines.append("| --- |" + " --- |" * len(sizes))
         for method, cells in table.items():
-            vals = [_number(cells[k][metric]) if k in cells else "–" for k in sizes]
+            vals = [_number(cells[k].get(metric, np.nan)) if k in cells else "–" for k in sizes]
             lines.append(f"| {method} | " + " | ".join(vals) + " |")
         lines.append("")
     if paired:
@@ -239,6 +244,10 @@ def _interval(d: dict) -> str:
 
 
 def _number(value: float) -> str:
+    if isinstance(value, int):  # (a count: the tosses that end on the recorded face)
+        return str(value)
+    if not np.isfinite(value):
+        return "not recorded"
     return f"{value:.2f}" if abs(value) < 1e4 else f"{value:.2g} (diverged)"
 
 
