@@ -624,7 +624,10 @@ def peers_fit(
         None, "--train-tosses", min=1, help="Fit on the first N training tosses in a seeded order (default: all)."
     ),
     budget: int = typer.Option(
-        None, "--budget", min=1, help="CMA-ES evaluations at most, each over every training toss (default 600)."
+        None,
+        "--budget",
+        min=1,
+        help="CMA-ES evaluations at most (over its restarts), each over every training toss (default 1800).",
     ),
     twist: str = typer.Option(
         "fitted",
