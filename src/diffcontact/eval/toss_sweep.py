@@ -218,7 +218,7 @@ def sweep_markdown(table: dict[str, dict[str, dict]], paired: dict[str, dict[str
         lines += [f"**{title}** (`{metric}`)", "", "| method | " + " | ".join(f"N = {k}" for k in sizes) + " |"]
         lines.append("| --- |" + " --- |" * len(sizes))
         for method, cells in table.items():
-            vals = [_number(cells[k].get(metric, np.nan)) if k in cells else "–" for k in sizes]
+            vals = [_number(cells[k].get(metric)) if k in cells else "–" for k in sizes]
             lines.append(f"| {method} | " + " | ".join(vals) + " |")
         lines.append("")
     if paired:
@@ -243,11 +243,11 @@ def _interval(d: dict) -> str:
     return f"{d['mean']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]"
 
 
-def _number(value: float) -> str:
+def _number(value: float | None) -> str:
+    if value is None:  # (a metric that the cell's metrics.json does not hold)
+        return "not recorded"
     if isinstance(value, int):  # (a count: the tosses that end on the recorded face)
         return str(value)
-    if not np.isfinite(value):
-        return "not recorded"
     return f"{value:.2f}" if abs(value) < 1e4 else f"{value:.2g} (diverged)"
 
 
