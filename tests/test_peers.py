@@ -213,11 +213,12 @@ def test_fit_command_writes_its_files(name, tmp_path):
     source, out = tmp_path / "tosses.npz", tmp_path / "fit"
     _npz(source)
     args = ["peers", "fit", name, str(source), "--out", str(out), "--budget", "2", "--split", "0.6", "0.2", "0.2"]
-    result = CliRunner().invoke(app, [*args, "--train-tosses", "3", "--seed", "1"])
+    result = CliRunner().invoke(app, [*args, "--train-tosses", "3", "--seed", "1", "--jobs", "2"])
     assert result.exit_code == 0, result.output
     fitted = json.loads((out / "fitted.json").read_text())
     metrics = json.loads((out / "metrics.json").read_text())
     assert fitted["train_tosses"] == 3 and fitted["optimiser"]["evaluations"] == 2 and fitted["seed"] == 1
+    assert fitted["optimiser"]["jobs"] == 2
     assert set(fitted["parameters"]) == {p.name for p in load_engine(name).PARAMETERS} | set(COM_NAMES)
     for key in ("fitted", "nominal"):
         assert metrics[key]["tosses"] == 2 and np.isfinite(metrics[key]["position_error_pct"])
@@ -247,6 +248,21 @@ def test_fit_command_writes_its_files(name, tmp_path):
     assert bad.exit_code == 2 and "twist = 'filtered' is not one of fitted, recorded, poses" in bad.output
 
 
+def test_candidates_scored_in_worker_processes_give_the_same_fit(name, tmp_path):
+    engine = _engine(name)
+    pytest.importorskip("cma")
+    from diffcontact.data.tosses import read_tosses
+    from diffcontact.peers.fit import fit_parameters
+
+    _npz(tmp_path / "tosses.npz", n=4)
+    tosses = read_tosses(tmp_path / "tosses.npz")
+    fits = [fit_parameters(engine, tosses, TABLE, 40, 5, lambda s: None, jobs=jobs) for jobs in (1, 2)]
+    assert fits[0]["params"] == fits[1]["params"] and fits[0]["train_metrics"] == fits[1]["train_metrics"]
+    for a, b in zip(fits[0]["optimiser"]["history"], fits[1]["optimiser"]["history"], strict=True):
+        assert {k: v for k, v in a.items() if k != "wall_time_s"} == {k: v for k, v in b.items() if k != "wall_time_s"}
+    assert [f["optimiser"]["jobs"] for f in fits] == [1, 2] and len(fits[0]["optimiser"]["history"]) >= 2
+
+
 def test_a_fit_whose_test_rollouts_the_engine_loses_says_so_and_writes_nothing(name, tmp_path, monkeypatch):
     engine = _engine(name)
     pytest.importorskip("cma")
@@ -265,7 +281,8 @@ def test_a_fit_whose_test_rollouts_the_engine_loses_says_so_and_writes_nothing(n
     monkeypatch.setattr(engine, "simulate", lose)
     source, out = tmp_path / "tosses.npz", tmp_path / "fit"
     _npz(source)
-    result = CliRunner().invoke(app, ["peers", "fit", name, str(source), "--out", str(out), "--budget", "2"])
+    args = ["peers", "fit", name, str(source), "--out", str(out), "--budget", "2", "--jobs", "1"]  # (one process:
+    result = CliRunner().invoke(app, args)  # the patched engine)
     assert result.exit_code == 2 and "rollouts of test tosses [" in result.output and "not finite" in result.output
     assert not (out / "metrics.json").exists() and not (out / "predictions.npz").exists()
 

@@ -641,15 +641,23 @@ def peers_fit(
         help="Also fit the centre of mass's offset from the box centre (com_x, com_y, com_z: body frame, ±2 cm, "
         "from 0), as our models learn it; --no-centre-of-mass keeps it at the box centre.",
     ),
+    jobs: int = typer.Option(
+        None,
+        "--jobs",
+        "-j",
+        min=1,
+        help="Processes that score CMA-ES's candidates (default: one per available CPU; the result is the same).",
+    ),
 ) -> None:
     """Fit an engine's contact parameters to the training tosses (CMA-ES); score it and its nominal parameters on
     the test tosses."""
     from diffcontact.peers.fit import DEFAULT_BUDGET, run_fit
+    from diffcontact.threads import available_cpus
 
     with _user_errors():
         m = run_fit(engine, source, out, seed=seed, split=split, train_tosses=train_tosses,
                     budget=budget or DEFAULT_BUDGET, twist=twist, echo=typer.echo,
-                    centre_of_mass=centre_of_mass)  # fmt: skip
+                    centre_of_mass=centre_of_mass, jobs=jobs or available_cpus())  # fmt: skip
     for name in ("fitted", "nominal"):
         r = {k: float("nan") for k in ("position_error_pct", "rotation_error_deg", "penetration_pct")} | m[name]
         typer.echo(f"{engine} {name}: position {r['position_error_pct']:.2f} %, rotation "

@@ -7,6 +7,8 @@ seeded. It searches the fraction u in [0, 1] of each parameter's range (a log ra
 0.25, then restarted from random points with twice the population each time (IPOP-CMA-ES) until the budget is
 spent: one run settles in one basin of that landscape, and a fit of MuJoCo or Bullet from the nominal values
 alone was worse on its own training tosses than the parameters fitted on other tosses (docs/real_data.md).
+A generation's candidates are scored in ``jobs`` worker processes at once (``diffcontact peers fit``: one per CPU),
+with the same result as in one process.
 The fitted set is the engine's ``PARAMETERS`` and, unless ``run_fit(centre_of_mass=False)``, the centre of mass's
 offset from the box centre (``cube.COM_PARAMETERS``: com_x, com_y, com_z in m, body frame, from 0), as our models
 learn it: with it Bullet's fit scores 10.29 % on the test tosses, without it 13.43 % (docs/results.md).
@@ -19,11 +21,14 @@ that is not finite scores FAILED.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
+import multiprocessing
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from importlib import metadata
 from pathlib import Path
 
@@ -66,6 +71,18 @@ def _metrics(tosses: Tosses, position: np.ndarray, quaternion: np.ndarray, table
     return m | {"objective": toss_objective(m)}
 
 
+_WORKER: dict = {}  # a scoring process's engine, tosses, table height and first states (``_start_worker``)
+
+
+def _start_worker(engine_name: str, tosses: Tosses, table_height: float, starts: Tosses | None) -> None:
+    _WORKER.update(engine=load_engine(engine_name), tosses=tosses, table_height=table_height, starts=starts)
+
+
+def _score_in_worker(params: dict[str, float]) -> dict[str, float]:
+    w = _WORKER
+    return score(w["engine"], w["tosses"], params, w["table_height"], w["starts"])
+
+
 def fit_parameters(
     engine,
     tosses: Tosses,
@@ -75,15 +92,41 @@ def fit_parameters(
     echo: Callable[[str], None] = print,
     starts: Tosses | None = None,
     space: tuple[Param, ...] | None = None,
+    jobs: int = 1,
 ) -> dict:
     """CMA-ES with restarts (IPOP) over ``space`` (default ``engine.PARAMETERS``) on ``tosses`` (rolled out from the
     first frames of ``starts``, or of ``tosses``), within ``budget`` evaluations (whole generations; at least one).
     The first run starts from the nominal values; each later one from a seeded uniform random point with twice the
     previous population. A run ends on CMA-ES's own stop, or when its best has improved by less than
-    STALL_IMPROVEMENT over STALL_GENERATIONS generations. Returns the best parameters of all runs, their metrics
-    and the optimiser's history."""
+    STALL_IMPROVEMENT over STALL_GENERATIONS generations. ``jobs`` > 1 scores each generation's candidates in so
+    many worker processes (the same result as one: each score depends on its parameters only). Returns the best
+    parameters of all runs, their metrics and the optimiser's history."""
+    space = space or engine.PARAMETERS
+    with contextlib.ExitStack() as stack:
+        if jobs > 1:  # (spawned, not forked: the parent holds torch's and the engines' threads)
+            context, init = multiprocessing.get_context("spawn"), (engine.ENGINE, tosses, table_height, starts)
+            pool = stack.enter_context(ProcessPoolExecutor(jobs, context, _start_worker, init))
+
+            def evaluate(batch: list[dict[str, float]]) -> list[dict[str, float]]:
+                return list(pool.map(_score_in_worker, batch))
+        else:
+
+            def evaluate(batch: list[dict[str, float]]) -> list[dict[str, float]]:
+                return [score(engine, tosses, params, table_height, starts) for params in batch]
+
+        return _search(evaluate, space, budget, seed, echo, jobs)
+
+
+def _search(
+    evaluate: Callable[[list[dict[str, float]]], list[dict[str, float]]],
+    space: tuple[Param, ...],
+    budget: int,
+    seed: int,
+    echo: Callable[[str], None],
+    jobs: int,
+) -> dict:
+    """``fit_parameters``' search, scoring each generation's parameter sets with ``evaluate``."""
     cma = require("cma")
-    space = engine.PARAMETERS if space is None else space
     rng = np.random.default_rng(seed)
     popsize0 = min(4 + int(3 * math.log(len(space))), budget)  # (CMA-ES's default, or the whole budget if smaller)
     best: dict = {"objective": math.inf}
@@ -106,10 +149,9 @@ def fit_parameters(
                 stop = f"stalled: less than {STALL_IMPROVEMENT} better in {STALL_GENERATIONS} generations"
                 break
             candidates = es.ask()
+            batch = [{p.name: p.value(x) for p, x in zip(space, u)} for u in candidates]
             values = []
-            for u in candidates:
-                params = {p.name: p.value(x) for p, x in zip(space, u)}
-                m = score(engine, tosses, params, table_height, starts)
+            for params, m in zip(batch, evaluate(batch)):
                 values.append(m["objective"])
                 if m["objective"] < best["objective"]:
                     best = m | {"params": params}
@@ -137,6 +179,7 @@ def fit_parameters(
             "sigma0": SIGMA0,
             "popsize": popsize0,
             "budget": budget,
+            "jobs": jobs,
             "evaluations": evaluations,
             "generations": len(history),
             "stall": {"generations": STALL_GENERATIONS, "improvement": STALL_IMPROVEMENT},
@@ -147,7 +190,7 @@ def fit_parameters(
     }
 
 
-def _check_request(split: tuple[float, float, float], seed: int, budget: int, twist: str) -> None:
+def _check_request(split: tuple[float, float, float], seed: int, budget: int, twist: str, jobs: int) -> None:
     if twist not in TWISTS:
         raise ConfigError(f"twist = {twist!r} is not one of {', '.join(TWISTS)}")
     if any(f < 0 for f in split) or abs(sum(split) - 1.0) > 1e-9 or split[2] <= 0:
@@ -156,6 +199,8 @@ def _check_request(split: tuple[float, float, float], seed: int, budget: int, tw
         raise ConfigError(f"seed = {seed} must be >= 0")
     if budget < 1:
         raise ConfigError(f"budget = {budget} must be >= 1 (objective evaluations)")
+    if jobs < 1:
+        raise ConfigError(f"jobs = {jobs} must be >= 1 (processes scoring the candidates)")
 
 
 def run_fit(
@@ -169,6 +214,7 @@ def run_fit(
     twist: str = "fitted",
     echo: Callable[[str], None] = print,
     centre_of_mass: bool = True,
+    jobs: int = 1,
 ) -> dict:
     """Fit ``engine_name`` (mujoco or bullet) on the training tosses of ``source`` (``read_tosses``; split by
     ``split_tosses(n, split, seed)``; with ``train_tosses`` N, the first N of the training split in a seeded
@@ -177,8 +223,9 @@ def run_fit(
     the one our models start from (``fitted``: ``data.measured.first_states``, a free-flight fit), the recorded
     pose with the source's twist (``recorded``: backward differences, median-filtered) or with the one-sided
     differences of the poses (``poses``). ``centre_of_mass``: also fit the centre of mass's offset from the box
-    centre (com_x, com_y, com_z, from 0; False: the centre of mass is the box centre). Returns the metrics."""
-    _check_request(split, seed, budget, twist)
+    centre (com_x, com_y, com_z, from 0; False: the centre of mass is the box centre). ``jobs``: processes that
+    score the search's candidates (``fit_parameters``). Returns the metrics."""
+    _check_request(split, seed, budget, twist, jobs)
     engine = load_engine(engine_name)
     tosses = read_tosses(source)
     if twist == "poses":
@@ -196,10 +243,10 @@ def run_fit(
         train_starts, test_starts = (with_first_states(t, table_height, [HALF_EXTENT] * 3) for t in (train, test))
     space: tuple[Param, ...] = engine.PARAMETERS + (COM_PARAMETERS if centre_of_mass else ())
     echo(f"{engine_name}: {train.n} training tosses ({len(train.position)} frames), {test.n} test tosses, "
-         f"table at z = {table_height * 1000:.3f} mm, budget {budget}, {len(space)} parameters, load "
-         f"{os.getloadavg()[0]:.2f}")  # fmt: skip
+         f"table at z = {table_height * 1000:.3f} mm, budget {budget}, {len(space)} parameters, scored in {jobs} "
+         f"process(es), load {os.getloadavg()[0]:.2f}")  # fmt: skip
     load_before = os.getloadavg()
-    fit = fit_parameters(engine, train, table_height, budget, seed, echo, train_starts, space)
+    fit = fit_parameters(engine, train, table_height, budget, seed, echo, train_starts, space, jobs)
     start = nominal(engine.PARAMETERS)
     position, quaternion = engine.simulate(test_starts or test, fit["params"], table_height)
     lost = [int(test.toss_id[i]) for i in range(test.n) if not np.isfinite(position[test.frames_of(i)]).all()]
