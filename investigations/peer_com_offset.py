@@ -18,11 +18,11 @@ import diffcontact  # noqa: F401  (first: it sets OpenMP's wait policy, which to
 import argparse
 import json
 
-from diffcontact.data.measured import with_first_states
-from diffcontact.data.tosses import read_tosses, resting_table_height, split_tosses
+from diffcontact.data.tosses import read_tosses
 from diffcontact.eval.pose_metrics import box_toss_metrics, paired_difference, per_toss_position_error
 from diffcontact.peers import ENGINES, load_engine
 from diffcontact.peers.cube import COM_NAMES, HALF_EXTENT, nominal
+from diffcontact.peers.fit import peer_tosses
 
 KEYS = ("position_error_pct", "rotation_error_deg", "penetration_pct")
 
@@ -37,17 +37,16 @@ def main() -> None:
     offsets = args.com or [[0.0, 0.0, 0.0], [0.0, 0.0, 9.0], [0.0, 0.0, 6.0]]
     half = [HALF_EXTENT] * 3
 
-    tosses = read_tosses(args.source)
-    parts = split_tosses(tosses.n, (0.8, 0.1, 0.1), 0)  # (run_fit's defaults)
-    table_height, _ = resting_table_height(tosses.subset(parts["train"]), half)
+    setting = peer_tosses(read_tosses(args.source))  # (run_fit's defaults)
+    table_height = setting.table_height
     results = []
     print("| engine | split | COM (mm) | position % | rotation ° | penetration % | paired Δ position % vs first |")
     print("|---|---|---|---|---|---|---|")
     for name in args.engine or list(ENGINES):
         engine = load_engine(name)
         for split in ("val", "test"):
-            recorded = tosses.subset(parts[split])
-            starts = with_first_states(recorded, table_height, half)
+            recorded = setting.part(split)
+            starts = setting.starts(recorded)
             reference = None
             for com in offsets:
                 params = nominal(engine.PARAMETERS) | {n: 1e-3 * c for n, c in zip(COM_NAMES, com)}

@@ -21,11 +21,9 @@ import json
 
 import numpy as np
 
-from diffcontact.data.measured import with_first_states
-from diffcontact.data.tosses import read_tosses, resting_table_height, split_tosses
+from diffcontact.data.tosses import read_tosses
 from diffcontact.peers import load_engine
-from diffcontact.peers.cube import HALF_EXTENT
-from diffcontact.peers.fit import score
+from diffcontact.peers.fit import peer_tosses, score
 
 
 def main() -> None:
@@ -37,12 +35,12 @@ def main() -> None:
     reference = fits[0]
     if len({f["engine"] for f in fits}) != 1:
         raise SystemExit("the fits are of different engines")
-    tosses = read_tosses(args.source)
-    parts = split_tosses(tosses.n, tuple(reference["split"]), reference["seed"])
-    table, _ = resting_table_height(tosses.subset(parts["train"]), [HALF_EXTENT] * 3)
-    index = np.flatnonzero(np.isin(tosses.toss_id, reference["train_toss_id"]))
-    train = tosses.subset(index)
-    starts = with_first_states(train, table, [HALF_EXTENT] * 3) if reference["initial_twist"] == "fitted" else None
+    setting = peer_tosses(read_tosses(args.source), tuple(reference["split"]), reference["seed"],
+                          reference["train_tosses"], reference["initial_twist"])  # fmt: skip
+    train, table = setting.train, setting.table_height
+    if not np.array_equal(train.toss_id, reference["train_toss_id"]):
+        raise SystemExit(f"{args.fitted[0]} was fitted on other tosses than its split and seed give in {args.source}")
+    starts = setting.starts(train)
     engine = load_engine(reference["engine"])
     for path, fit in zip(args.fitted, fits):
         m = score(engine, train, fit["parameters"], table, starts)

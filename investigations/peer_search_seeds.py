@@ -22,12 +22,11 @@ import json
 
 import numpy as np
 
-from diffcontact.data.measured import with_first_states
-from diffcontact.data.tosses import read_tosses, resting_table_height, split_tosses, training_subset
+from diffcontact.data.tosses import read_tosses
 from diffcontact.eval.pose_metrics import paired_difference, per_toss_position_error
 from diffcontact.peers import load_engine
 from diffcontact.peers.cube import COM_PARAMETERS, HALF_EXTENT
-from diffcontact.peers.fit import DEFAULT_BUDGET, fit_parameters, score
+from diffcontact.peers.fit import DEFAULT_BUDGET, fit_parameters, peer_tosses, score
 
 
 def main() -> None:
@@ -41,11 +40,9 @@ def main() -> None:
     parser.add_argument("--reference", help="an exact model's test predictions.npz at the same N")
     args = parser.parse_args()
     engine = load_engine(args.engine)
-    tosses = read_tosses(args.source)
-    parts = split_tosses(tosses.n, (0.8, 0.1, 0.1), 0)
-    train, test = tosses.subset(training_subset(parts["train"], args.n, 0)), tosses.subset(parts["test"])
-    table, _ = resting_table_height(tosses.subset(parts["train"]), [HALF_EXTENT] * 3)
-    train_starts, test_starts = (with_first_states(t, table, [HALF_EXTENT] * 3) for t in (train, test))
+    setting = peer_tosses(read_tosses(args.source), train_tosses=args.n)  # (the sweep's split, seed 0)
+    train, test, table = setting.train, setting.part("test"), setting.table_height
+    train_starts, test_starts = setting.starts(train), setting.starts(test)
     reference = None
     if args.reference:
         with np.load(args.reference) as z:

@@ -51,6 +51,45 @@ STALL_IMPROVEMENT = 0.1  # generations (objective units: % of the width); the ne
 TWISTS = ("fitted", "recorded", "poses")  # where the initial state of a rollout comes from (run_fit)
 
 
+@dataclasses.dataclass(frozen=True)
+class PeerTosses:
+    """The tosses a peer is fitted and scored on: ``split_tosses(n, split, seed)`` of all the tosses, the training
+    tosses (the first N of the training split, ``training_subset``, as ``diffcontact import``'s) and the table
+    plane, which belongs to the setup, not to the fitted contact: from the resting frames of the whole training
+    split for every N (``resting_table_height``)."""
+
+    tosses: Tosses  # all of them
+    parts: dict[str, np.ndarray]  # positions into ``tosses`` of train / val / test
+    train: Tosses  # the training tosses (the first N of the training split)
+    table_height: float  # m
+    table_iqr: float  # m, interquartile range of the resting frames
+    twist: str  # where a rollout's initial state comes from (``run_fit``)
+
+    def part(self, name: str) -> Tosses:
+        """The tosses of one part of the split (train: the whole training split; val; test)."""
+        return self.tosses.subset(self.parts[name])
+
+    def starts(self, tosses: Tosses) -> Tosses | None:
+        """``tosses`` with the first states rollouts start from (twist fitted: ``with_first_states``), or None
+        (the rollouts start from their recorded first frames)."""
+        return with_first_states(tosses, self.table_height, [HALF_EXTENT] * 3) if self.twist == "fitted" else None
+
+
+def peer_tosses(
+    tosses: Tosses,
+    split: tuple[float, float, float] = (0.8, 0.1, 0.1),
+    seed: int = 0,
+    train_tosses: int | None = None,
+    twist: str = "fitted",
+) -> PeerTosses:
+    """The split, training tosses and table of a peer's fit (``run_fit``'s; ``train_tosses`` N: the first N of
+    the training split in ``seed``'s order, all if None)."""
+    parts = split_tosses(tosses.n, split, seed)
+    train = tosses.subset(training_subset(parts["train"], train_tosses, seed))  # (as diffcontact import's)
+    height, iqr = resting_table_height(tosses.subset(parts["train"]), [HALF_EXTENT] * 3)
+    return PeerTosses(tosses, parts, train, height, iqr, twist)
+
+
 def score(
     engine, tosses: Tosses, params: dict[str, float], table_height: float, starts: Tosses | None = None
 ) -> dict[str, float]:
@@ -233,14 +272,9 @@ def run_fit(
 
         velocity, omega = finite_difference_twist(tosses)
         tosses = dataclasses.replace(tosses, velocity=velocity, omega=omega)
-    parts = split_tosses(tosses.n, split, seed)
-    train_index = training_subset(parts["train"], train_tosses, seed)  # (the same tosses as diffcontact import's)
-    train, test = tosses.subset(train_index), tosses.subset(parts["test"])
-    # the table plane belongs to the setup, not to the fitted contact: from the whole training split for every N
-    table_height, table_iqr = resting_table_height(tosses.subset(parts["train"]), [HALF_EXTENT] * 3)
-    train_starts = test_starts = None
-    if twist == "fitted":
-        train_starts, test_starts = (with_first_states(t, table_height, [HALF_EXTENT] * 3) for t in (train, test))
+    setting = peer_tosses(tosses, split, seed, train_tosses, twist)
+    train, test, table_height = setting.train, setting.part("test"), setting.table_height
+    train_starts, test_starts = setting.starts(train), setting.starts(test)
     space: tuple[Param, ...] = engine.PARAMETERS + (COM_PARAMETERS if centre_of_mass else ())
     echo(f"{engine_name}: {train.n} training tosses ({len(train.position)} frames), {test.n} test tosses, "
          f"table at z = {table_height * 1000:.3f} mm, budget {budget}, {len(space)} parameters, scored in {jobs} "
@@ -261,8 +295,8 @@ def run_fit(
         "fitted": _metrics(test, position, quaternion, table_height),
         "nominal": score(engine, test, start, table_height, test_starts),
         "table_height_m": table_height,
-        "table_height_iqr_m": table_iqr,
-        "table_height_from": f"resting frames of the training split ({len(parts['train'])} tosses)",
+        "table_height_iqr_m": setting.table_iqr,
+        "table_height_from": f"resting frames of the training split ({len(setting.parts['train'])} tosses)",
         "objective": TOSS_OBJECTIVE,
         "rotation_weight": ROTATION_WEIGHT,
         "seed": seed,
