@@ -26,7 +26,7 @@ from diffcontact.data.tosses import read_tosses
 from diffcontact.eval.pose_metrics import paired_difference, per_toss_position_error
 from diffcontact.peers import load_engine
 from diffcontact.peers.cube import COM_PARAMETERS, HALF_EXTENT
-from diffcontact.peers.fit import DEFAULT_BUDGET, fit_parameters, peer_tosses, score
+from diffcontact.peers.fit import DEFAULT_BUDGET, fit_parameters, peer_tosses, rollout_metrics
 
 
 def main() -> None:
@@ -52,11 +52,11 @@ def main() -> None:
     space = engine.PARAMETERS + COM_PARAMETERS
     for seed in args.seeds:
         fit = fit_parameters(engine, train, table, args.budget, seed, lambda s: None, train_starts, space, args.jobs)
-        position, _ = engine.simulate(test_starts, fit["params"], table)
+        position, quaternion = engine.simulate(test_starts, fit["params"], table)
         line = {"engine": args.engine, "n": args.n, "search_seed": seed, "budget": args.budget,
                 "train_objective": fit["train_metrics"]["objective"],
                 "runs": [(r["popsize"], r["best"]) for r in fit["optimiser"]["runs"]],
-                "test": score(engine, test, fit["params"], table, test_starts), "params": fit["params"]}  # fmt: skip
+                "test": rollout_metrics(test, position, quaternion, table), "params": fit["params"]}  # fmt: skip
         if reference is not None:
             errors = per_toss_position_error(position, test.position, test.offsets, [HALF_EXTENT] * 3)
             line["reference_minus_fit"] = paired_difference(reference, errors)

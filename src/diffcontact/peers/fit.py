@@ -96,10 +96,12 @@ def score(
     """``box_toss_metrics`` of the engine's rollouts of ``tosses`` plus ``objective``; the rollouts start from the
     first frames of ``starts`` (the same tosses with estimated first states), or of ``tosses``."""
     position, quaternion = engine.simulate(starts or tosses, params, table_height)
-    return _metrics(tosses, position, quaternion, table_height)
+    return rollout_metrics(tosses, position, quaternion, table_height)
 
 
-def _metrics(tosses: Tosses, position: np.ndarray, quaternion: np.ndarray, table_height: float) -> dict[str, float]:
+def rollout_metrics(
+    tosses: Tosses, position: np.ndarray, quaternion: np.ndarray, table_height: float
+) -> dict[str, float]:
     """``box_toss_metrics`` of predicted (F, 3), (F, 4) against ``tosses``, plus ``objective``; a prediction that is
     not finite gives the objective FAILED and no metrics."""
     if not (np.isfinite(position).all() and np.isfinite(quaternion).all()):
@@ -292,7 +294,7 @@ def run_fit(
     metrics = {
         "engine": engine_name,
         "split": "test",
-        "fitted": _metrics(test, position, quaternion, table_height),
+        "fitted": rollout_metrics(test, position, quaternion, table_height),
         "nominal": score(engine, test, start, table_height, test_starts),
         "table_height_m": table_height,
         "table_height_iqr_m": setting.table_iqr,
