@@ -7,6 +7,7 @@ Skipped for an engine (or the optimiser) that is not installed: ``pip install -e
 from __future__ import annotations
 
 import json
+import os
 import sys
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from diffcontact.data.tosses import CONTACTNETS_DT, Tosses
 from diffcontact.errors import ConfigError
 from diffcontact.eval.pose_metrics import rotation_angle
+from diffcontact.lock import output_lock
 from diffcontact.peers import ENGINES, MissingPeerPackageError, load_engine
 from diffcontact.peers.cube import COM_NAMES, COM_PARAMETERS, GRAVITY, HALF_EXTENT, SUBSTEPS, nominal
 from diffcontact.systems.poses import box_vertices, rotate
@@ -246,6 +248,11 @@ def test_fit_command_writes_its_files(name, tmp_path):
     assert bad.exit_code == 2 and "train_tosses = 7 is not in [1, 6]" in bad.output
     bad = CliRunner().invoke(app, [*args, "--twist", "filtered"])
     assert bad.exit_code == 2 and "twist = 'filtered' is not one of fitted, recorded, poses" in bad.output
+    held = tmp_path / "held"
+    with output_lock(held):  # (another fit writing into the folder: this one stops at once and writes nothing)
+        second = CliRunner().invoke(app, [*args[:4], "--out", str(held), *args[6:]])
+        assert second.exit_code == 2 and f"{held} is being written by pid {os.getpid()}" in second.output
+        assert [f.name for f in held.iterdir()] == [".lock"]
 
 
 def test_candidates_scored_in_worker_processes_give_the_same_fit(name, tmp_path):

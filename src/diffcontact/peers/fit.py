@@ -39,6 +39,7 @@ from diffcontact.data.tosses import Tosses, read_tosses, resting_table_height, s
 from diffcontact.errors import ConfigError, DiffContactError
 from diffcontact.eval.pose_metrics import ROTATION_WEIGHT, TOSS_OBJECTIVE, box_toss_metrics, toss_objective
 from diffcontact.files import save_arrays, versions, write_json
+from diffcontact.lock import output_lock
 from diffcontact.peers import ENGINES, load_engine, require
 from diffcontact.peers.cube import COM_PARAMETERS, GRAVITY, HALF_EXTENT, INERTIA, MASS, SUBSTEPS, Param, nominal
 from diffcontact.run_dir import METRICS, PREDICTIONS
@@ -267,71 +268,71 @@ def run_fit(
     centre (com_x, com_y, com_z, from 0; False: the centre of mass is the box centre). ``jobs``: processes that
     score the search's candidates (``fit_parameters``). Returns the metrics."""
     _check_request(split, seed, budget, twist, jobs)
-    engine = load_engine(engine_name)
-    tosses = read_tosses(source)
-    if twist == "poses":
-        from diffcontact.data.measured import finite_difference_twist
-
-        velocity, omega = finite_difference_twist(tosses)
-        tosses = dataclasses.replace(tosses, velocity=velocity, omega=omega)
-    setting = peer_tosses(tosses, split, seed, train_tosses, twist)
-    train, test, table_height = setting.train, setting.part("test"), setting.table_height
-    train_starts, test_starts = setting.starts(train), setting.starts(test)
-    space: tuple[Param, ...] = engine.PARAMETERS + (COM_PARAMETERS if centre_of_mass else ())
-    echo(f"{engine_name}: {train.n} training tosses ({len(train.position)} frames), {test.n} test tosses, "
-         f"table at z = {table_height * 1000:.3f} mm, budget {budget}, {len(space)} parameters, scored in {jobs} "
-         f"process(es), load {os.getloadavg()[0]:.2f}")  # fmt: skip
-    load_before = os.getloadavg()
-    fit = fit_parameters(engine, train, table_height, budget, seed, echo, train_starts, space, jobs)
-    start = nominal(engine.PARAMETERS)
-    position, quaternion = engine.simulate(test_starts or test, fit["params"], table_height)
-    lost = [int(test.toss_id[i]) for i in range(test.n) if not np.isfinite(position[test.frames_of(i)]).all()]
-    if lost:
-        raise DiffContactError(
-            f"{engine_name}: the fitted parameters' rollouts of test tosses {lost} are not finite (the engine lost "
-            f"them: unstable); nothing written"
-        )
-    metrics = {
-        "engine": engine_name,
-        "split": "test",
-        "fitted": rollout_metrics(test, position, quaternion, table_height),
-        "nominal": score(engine, test, start, table_height, test_starts),
-        "table_height_m": table_height,
-        "table_height_iqr_m": setting.table_iqr,
-        "table_height_from": f"resting frames of the training split ({len(setting.parts['train'])} tosses)",
-        "objective": TOSS_OBJECTIVE,
-        "rotation_weight": ROTATION_WEIGHT,
-        "seed": seed,
-        "initial_twist": twist,
-        "centre_of_mass": centre_of_mass,
-        "test_toss_id": test.toss_id.tolist(),
-    }
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    fitted = {
-        "engine": engine_name,
-        "parameters": fit["params"],
-        "nominal_parameters": start,
-        "bounds": {p.name: {"low": p.low, "high": p.high, "log": p.log, "unit": p.unit} for p in space},
-        "train_metrics": fit["train_metrics"],
-        "train_metrics_nominal": score(engine, train, start, table_height, train_starts),
-        "optimiser": fit["optimiser"],
-        "seed": seed,
-        "split": list(split),
-        "train_tosses": train.n,
-        "train_toss_id": train.toss_id.tolist(),
-        "initial_twist": twist,
-        "centre_of_mass": centre_of_mass,  # (fitted: com_x, com_y, com_z in parameters; else the box centre)
-        "cube": {"half_extent_m": HALF_EXTENT, "mass_kg": MASS, "inertia_kg_m2": INERTIA, "gravity_m_s2": GRAVITY},
-        "timestep_s": tosses.dt / SUBSTEPS,
-        "substeps": SUBSTEPS,
-        "load_average": {"start": list(load_before), "end": list(os.getloadavg())},
-        "versions": versions(**{p: metadata.version(p) for p in (ENGINES[engine_name], "cma")}),
-    }
-    write_json(out / "fitted.json", fitted)
-    write_json(out / METRICS, metrics)  # (named as an evaluation's: the toss sweep reads both alike)
-    save_arrays(
-        out / PREDICTIONS,
-        {"position": position, "quaternion": quaternion, "offsets": test.offsets, "toss_id": test.toss_id},
-    )
-    return metrics
+    with output_lock(out):  # (one fit at a time into a folder: a second one stops at once, naming the first)
+        engine = load_engine(engine_name)
+        tosses = read_tosses(source)
+        if twist == "poses":
+            from diffcontact.data.measured import finite_difference_twist
+
+            velocity, omega = finite_difference_twist(tosses)
+            tosses = dataclasses.replace(tosses, velocity=velocity, omega=omega)
+        setting = peer_tosses(tosses, split, seed, train_tosses, twist)
+        train, test, table_height = setting.train, setting.part("test"), setting.table_height
+        train_starts, test_starts = setting.starts(train), setting.starts(test)
+        space: tuple[Param, ...] = engine.PARAMETERS + (COM_PARAMETERS if centre_of_mass else ())
+        echo(f"{engine_name}: {train.n} training tosses ({len(train.position)} frames), {test.n} test tosses, "
+             f"table at z = {table_height * 1000:.3f} mm, budget {budget}, {len(space)} parameters, scored in {jobs} "
+             f"process(es), load {os.getloadavg()[0]:.2f}")  # fmt: skip
+        load_before = os.getloadavg()
+        fit = fit_parameters(engine, train, table_height, budget, seed, echo, train_starts, space, jobs)
+        start = nominal(engine.PARAMETERS)
+        position, quaternion = engine.simulate(test_starts or test, fit["params"], table_height)
+        lost = [int(test.toss_id[i]) for i in range(test.n) if not np.isfinite(position[test.frames_of(i)]).all()]
+        if lost:
+            raise DiffContactError(
+                f"{engine_name}: the fitted parameters' rollouts of test tosses {lost} are not finite (the engine lost "
+                f"them: unstable); nothing written"
+            )
+        metrics = {
+            "engine": engine_name,
+            "split": "test",
+            "fitted": rollout_metrics(test, position, quaternion, table_height),
+            "nominal": score(engine, test, start, table_height, test_starts),
+            "table_height_m": table_height,
+            "table_height_iqr_m": setting.table_iqr,
+            "table_height_from": f"resting frames of the training split ({len(setting.parts['train'])} tosses)",
+            "objective": TOSS_OBJECTIVE,
+            "rotation_weight": ROTATION_WEIGHT,
+            "seed": seed,
+            "initial_twist": twist,
+            "centre_of_mass": centre_of_mass,
+            "test_toss_id": test.toss_id.tolist(),
+        }
+        fitted = {
+            "engine": engine_name,
+            "parameters": fit["params"],
+            "nominal_parameters": start,
+            "bounds": {p.name: {"low": p.low, "high": p.high, "log": p.log, "unit": p.unit} for p in space},
+            "train_metrics": fit["train_metrics"],
+            "train_metrics_nominal": score(engine, train, start, table_height, train_starts),
+            "optimiser": fit["optimiser"],
+            "seed": seed,
+            "split": list(split),
+            "train_tosses": train.n,
+            "train_toss_id": train.toss_id.tolist(),
+            "initial_twist": twist,
+            "centre_of_mass": centre_of_mass,  # (fitted: com_x, com_y, com_z in parameters; else the box centre)
+            "cube": {"half_extent_m": HALF_EXTENT, "mass_kg": MASS, "inertia_kg_m2": INERTIA, "gravity_m_s2": GRAVITY},
+            "timestep_s": tosses.dt / SUBSTEPS,
+            "substeps": SUBSTEPS,
+            "load_average": {"start": list(load_before), "end": list(os.getloadavg())},
+            "versions": versions(**{p: metadata.version(p) for p in (ENGINES[engine_name], "cma")}),
+        }
+        write_json(out / "fitted.json", fitted)
+        write_json(out / METRICS, metrics)  # (named as an evaluation's: the toss sweep reads both alike)
+        save_arrays(
+            out / PREDICTIONS,
+            {"position": position, "quaternion": quaternion, "offsets": test.offsets, "toss_id": test.toss_id},
+        )
+        return metrics
