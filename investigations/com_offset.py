@@ -7,7 +7,7 @@ a split's whole tosses (as ``evaluate`` does) with its centre of mass at ``--off
 box's centre (the task file's ``body.centre_of_mass``, which a trained model learns).
 
     python investigations/com_offset.py data/CubeToss --split val --offset 0 0 3
-    python investigations/com_offset.py data/CubeToss --faces     # the final face counts of every toss
+    python investigations/com_offset.py data/CubeToss --faces     # the final faces of every toss, and resting heights
     python investigations/com_offset.py --paired A.json B.json   # two saved outputs' paired difference, toss by toss
 """
 
@@ -57,15 +57,23 @@ def main() -> None:
         return
 
     if args.faces:
-        result = {}
+        result, resting = {}, []
         for split in ("train", "val", "test"):
             tosses, _ = recorded_tosses(args.data, split)
             last = face_down(tosses.quaternion[tosses.offsets[1:] - 1])
             first = face_down(tosses.quaternion[tosses.offsets[:-1]])
             result[split] = {"last": {f: last.count(f) for f in FACES}, "first": {f: first.count(f) for f in FACES}}
+            resting.append((last, tosses.position[tosses.offsets[1:] - 1, 2]))
         for when in ("last", "first"):
             counts = [sum(result[s][when][f] for s in ("train", "val", "test")) for f in FACES]
             result[f"all, {when}: chi-square p"] = float(chisquare(counts).pvalue)
+        # A tracked centre off the cube's geometric centre along a body axis would rest higher on one face of that
+        # axis than on the other; a centre of mass off it would not change the resting height.
+        faces = [f for last, _ in resting for f in last]
+        heights = np.concatenate([z for _, z in resting])
+        result["all, last: centre height above the table, median mm"] = {
+            f: round(1e3 * float(np.median(heights[[g == f for g in faces]])), 3) for f in FACES
+        }
         print(json.dumps(result, indent=1))
         return
 
