@@ -24,20 +24,19 @@ import numpy as np
 import torch
 from scipy.stats import chisquare
 
+from diffcontact.eval import pose_metrics
 from diffcontact.eval.pose_metrics import paired_difference, per_toss_position_error
 from diffcontact.eval.tosses import predict_tosses, recorded_tosses, score_tosses
 from diffcontact.models.model import known_model
-from diffcontact.systems.poses import quaternion_to_matrix
 from diffcontact.systems.registry import build_task
 
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
+FACE_NAMES = ("-x", "+x", "-y", "+y", "-z", "+z")  # (the numbering of pose_metrics.face_down)
 
 
 def face_down(quaternion: np.ndarray) -> list[str]:
-    """The body face (of ``FACES``) that points most nearly down, for each quaternion (n, 4), w first."""
-    down = -quaternion_to_matrix(torch.from_numpy(quaternion)).numpy()[:, 2, :]  # (n, 3): world −z in the body frame
-    axis = np.abs(down).argmax(1)
-    return [("+" if down[i, k] > 0 else "-") + "xyz"[k] for i, k in enumerate(axis)]
+    """The body face that points most nearly down, named as in ``FACES``, for each quaternion (n, 4), w first."""
+    return [FACE_NAMES[i] for i in pose_metrics.face_down(quaternion)]
 
 
 def main() -> None:
