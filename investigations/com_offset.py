@@ -28,6 +28,7 @@ from diffcontact.eval import pose_metrics
 from diffcontact.eval.pose_metrics import paired_difference, per_toss_position_error
 from diffcontact.eval.tosses import predict_tosses, recorded_tosses, score_tosses
 from diffcontact.models.model import known_model
+from diffcontact.systems.poses import rotate
 from diffcontact.systems.registry import build_task
 
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
@@ -37,6 +38,38 @@ FACE_NAMES = ("-x", "+x", "-y", "+y", "-z", "+z")  # (the numbering of pose_metr
 def face_down(quaternion: np.ndarray) -> list[str]:
     """The body face that points most nearly down, named as in ``FACES``, for each quaternion (n, 4), w first."""
     return [FACE_NAMES[i] for i in pose_metrics.face_down(quaternion)]
+
+
+def resting_poses(quaternion: np.ndarray, position: np.ndarray) -> dict:
+    """What the tosses' last frames (quaternion (n, 4), position (n, 3) in m above the table) say of the tracking.
+
+    A tracked centre off the cube's geometric centre along a body axis would rest higher on one face of that axis
+    than on the other (a centre of mass off it would not change the resting height). A cube resting flat on a flat
+    table has its upward axis vertical: the tilt of that axis, in the table's frame, is the tracking's error of
+    orientation or the table's slope where the cube rests, and the second would follow where it rests."""
+    faces = np.array(face_down(quaternion))
+    axes = rotate(quaternion, np.eye(3))  # (n, 3, 3): the body's x, y, z axes in the table frame
+    rows = np.arange(len(axes))
+    vertical = np.abs(axes[..., 2]).argmax(1)
+    up = axes[rows, vertical] * np.sign(axes[rows, vertical, 2])[:, None]
+    tilt = up[:, :2]  # (n, 2): the upward axis's horizontal part, radians to first order
+    X = np.column_stack([np.ones(len(position)), position[:, :2]])
+    coef, *_ = np.linalg.lstsq(X, tilt, rcond=None)
+    r2 = 1 - ((tilt - X @ coef) ** 2).sum(0) / ((tilt - tilt.mean(0)) ** 2).sum(0)
+    return {
+        "all, last: centre height above the table, median mm": {
+            f: round(1e3 * float(np.median(position[faces == f, 2])), 3) for f in FACES
+        },
+        "all, last: tilt of the upward axis, median deg": round(float(np.degrees(np.median(np.hypot(*tilt.T)))), 3),
+        "all, last: tilt's table-x and -y parts against the resting x, y": {
+            "deg per m (rows: x part, y part; columns: x, y)": np.degrees(coef[1:].T).round(2).tolist(),
+            "r2": r2.round(3).tolist(),
+            "resting x, y range m": [
+                position[:, :2].min(0).round(3).tolist(),
+                position[:, :2].max(0).round(3).tolist(),
+            ],
+        },
+    }
 
 
 def main() -> None:
@@ -56,23 +89,18 @@ def main() -> None:
         return
 
     if args.faces:
-        result, resting = {}, []
+        result, rest_q, rest_p = {}, [], []
         for split in ("train", "val", "test"):
             tosses, _ = recorded_tosses(args.data, split)
             last = face_down(tosses.quaternion[tosses.offsets[1:] - 1])
             first = face_down(tosses.quaternion[tosses.offsets[:-1]])
             result[split] = {"last": {f: last.count(f) for f in FACES}, "first": {f: first.count(f) for f in FACES}}
-            resting.append((last, tosses.position[tosses.offsets[1:] - 1, 2]))
+            rest_q.append(tosses.quaternion[tosses.offsets[1:] - 1])
+            rest_p.append(tosses.position[tosses.offsets[1:] - 1])
         for when in ("last", "first"):
             counts = [sum(result[s][when][f] for s in ("train", "val", "test")) for f in FACES]
             result[f"all, {when}: chi-square p"] = float(chisquare(counts).pvalue)
-        # A tracked centre off the cube's geometric centre along a body axis would rest higher on one face of that
-        # axis than on the other; a centre of mass off it would not change the resting height.
-        faces = [f for last, _ in resting for f in last]
-        heights = np.concatenate([z for _, z in resting])
-        result["all, last: centre height above the table, median mm"] = {
-            f: round(1e3 * float(np.median(heights[[g == f for g in faces]])), 3) for f in FACES
-        }
+        result |= resting_poses(np.concatenate(rest_q), np.concatenate(rest_p))
         print(json.dumps(result, indent=1))
         return
 

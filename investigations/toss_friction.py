@@ -60,12 +60,14 @@ SPIN_BINS = (-20.0, -2.0, -0.5, 0.5, 2.0, 20.0)  # rad/s, about the vertical
 FLAT_MM, HALF_WINDOW = 1.5, 6
 
 
-def flat_sliding(position, quaternion, dt: float, table_height: float, half_extents) -> np.ndarray:
+def flat_sliding(
+    position, quaternion, dt: float, table_height: float, half_extents, flat_mm: float = FLAT_MM
+) -> np.ndarray:
     """(n, 5) of the flat-sliding frames of one toss: speed (m/s), deceleration along the motion (m/s²), acceleration
     across it (m/s², to the left of the motion positive), the spin about the vertical (rad/s, counterclockwise from
     above positive) and the direction of travel (degrees from the table's x axis)."""
     heights = (position[:, None] + rotate(quaternion, box_vertices(half_extents)))[..., 2] - table_height
-    flat = np.sort(heights, 1)[:, 3] < FLAT_MM * 1e-3
+    flat = np.sort(heights, 1)[:, 3] < flat_mm * 1e-3
     t = np.arange(-HALF_WINDOW, HALF_WINDOW + 1) * dt
     X = np.stack([np.ones_like(t), t, 0.5 * t**2], 1)
     out = []
@@ -208,6 +210,7 @@ def main() -> None:
     parser.add_argument("--no-model", action="store_true", help="measure the recording only")
     parser.add_argument("--grid", help="face_outcomes.py --save of the same split: best μ against sliding friction")
     parser.add_argument("--predictions", help="a run's predictions.npz on the same split (diffcontact evaluate)")
+    parser.add_argument("--flat-mm", type=float, default=FLAT_MM, help="flat: the 4th lowest corner below this (mm)")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -219,7 +222,7 @@ def main() -> None:
     def measure(poses) -> dict:
         sliding, ratios = [], []
         for i, (position, quaternion) in enumerate(poses):
-            sliding.append(flat_sliding(position, quaternion, tosses.dt, height, half))
+            sliding.append(flat_sliding(position, quaternion, tosses.dt, height, half, args.flat_mm))
             ratio = first_impact(position, quaternion, first_contact[i], tosses.dt, gravity, half)
             if ratio is not None:
                 ratios.append(ratio)
