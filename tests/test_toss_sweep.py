@@ -57,6 +57,14 @@ def test_the_sweep_runs_its_cells_resumes_and_tabulates(tmp_path):
     paired = _paired(out, folder, ("CM-CD-CLNN", "nominal"), 4)
     assert paired["nominal"]["mean"] == pytest.approx(-cells["4"]["position_error_pct"], rel=1e-12)
     assert paired["nominal"]["lo"] <= paired["nominal"]["mean"] <= paired["nominal"]["hi"] < 0
+    # predictions of other tosses are refused, naming the file
+    from diffcontact.errors import DatasetError
+    from diffcontact.eval.tosses import paired_position_errors
+
+    other = out / "other.npz"
+    np.savez(other, position=tosses.position, toss_id=tosses.toss_id[::-1])
+    with pytest.raises(DatasetError, match="other.npz holds predictions of other tosses"):
+        paired_position_errors(folder, exact / "predictions.npz", {"other": other})
     text = sweep_markdown(record["table"], {"nominal": {"4": paired["nominal"]}})
     assert "CM-CD-CLNN minus each method" in text and f"| nominal | {paired['nominal']['mean']:+.2f} [" in text
 

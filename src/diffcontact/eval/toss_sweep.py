@@ -193,18 +193,13 @@ def toss_sweep(
 def _paired(out: Path, folder: Path, methods, n: int | None) -> dict[str, dict]:
     """At one N: the exact model's per-toss position error minus each other method's, on the same test tosses
     (``pose_metrics.paired_difference``), from the cells' predictions.npz."""
-    from diffcontact.eval.pose_metrics import paired_difference, per_toss_position_error
-    from diffcontact.eval.tosses import recorded_tosses
+    from diffcontact.eval.tosses import paired_position_errors
 
-    tosses, request = recorded_tosses(folder, "test")
-    errors = {}
-    for method in methods:
-        with np.load(_folders(out, method, n)[1] / PREDICTIONS) as predicted:
-            if not np.array_equal(predicted["toss_id"], tosses.toss_id):
-                raise DiffContactError(f"{method} at N = {n} was scored on other test tosses than {folder}")
-            position = predicted["position"]
-        errors[method] = per_toss_position_error(position, tosses.position, tosses.offsets, request["half_extents_m"])
-    return {m: paired_difference(errors[REFERENCE], e) for m, e in errors.items() if m != REFERENCE}
+    def path(method: str) -> Path:
+        return _folders(out, method, n)[1] / PREDICTIONS
+
+    others = {m: path(m) for m in methods if m != REFERENCE}
+    return paired_position_errors(folder, path(REFERENCE), others)
 
 
 def sweep_markdown(table: dict[str, dict[str, dict]], paired: dict[str, dict[str, dict]] | None = None) -> str:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, cast
 
@@ -19,7 +20,7 @@ from diffcontact.data.measured import tosses_to_points
 from diffcontact.data.store import load_meta
 from diffcontact.data.tosses import Tosses, load_tosses
 from diffcontact.errors import DatasetError
-from diffcontact.eval.pose_metrics import box_toss_metrics
+from diffcontact.eval.pose_metrics import box_toss_metrics, paired_difference, per_toss_position_error
 from diffcontact.eval.rollouts import predict
 from diffcontact.files import save_arrays, versions, write_json
 from diffcontact.run_dir import METRICS, PREDICTIONS
@@ -49,6 +50,25 @@ def recorded_tosses(folder: str | Path, split: str = "test") -> tuple[Tosses, di
         raise DatasetError(f"{folder}: split {split} has no tosses")
     index = np.searchsorted(tosses.toss_id, wanted)
     return tosses.subset(index), request
+
+
+def paired_position_errors(
+    folder: str | Path, reference: str | Path, others: Mapping[str, str | Path], split: str = "test"
+) -> dict[str, dict[str, float]]:
+    """The per-toss position error of the predictions in ``reference`` (a predictions.npz of ``diffcontact
+    evaluate`` or ``peers fit``) minus that of each of ``others`` on the same tosses of ``split``, as
+    ``pose_metrics.paired_difference`` (mean and 95 % bootstrap interval, % of the width) by name."""
+    tosses, request = recorded_tosses(folder, split)
+
+    def errors(path: str | Path) -> np.ndarray:
+        with np.load(path) as predicted:
+            if not np.array_equal(predicted["toss_id"], tosses.toss_id):
+                raise DatasetError(f"{path} holds predictions of other tosses than the {split} split of {folder}")
+            position = predicted["position"]
+        return per_toss_position_error(position, tosses.position, tosses.offsets, request["half_extents_m"])
+
+    base = errors(reference)
+    return {name: paired_difference(base, errors(path)) for name, path in others.items()}
 
 
 def predict_tosses(net: nn.Module, folder: str | Path, split: str = "test") -> dict[str, Any]:
