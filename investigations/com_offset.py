@@ -40,6 +40,28 @@ def face_down(quaternion: np.ndarray) -> list[str]:
     return [FACE_NAMES[i] for i in pose_metrics.face_down(quaternion)]
 
 
+def resting_frames(data) -> tuple[np.ndarray, np.ndarray]:
+    """The last frame of every toss of every split of the dataset ``data``: quaternions (n, 4), positions (n, 3)."""
+    q, p = [], []
+    for split in ("train", "val", "test"):
+        tosses, _ = recorded_tosses(data, split)
+        q.append(tosses.quaternion[tosses.offsets[1:] - 1])
+        p.append(tosses.position[tosses.offsets[1:] - 1])
+    return np.concatenate(q), np.concatenate(p)
+
+
+def resting_tilt(quaternion: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tilt (n, 2) of each resting cube's upward axis (its table-x and -y parts, rad to first order) and its
+    linear fit on where the cube rests, (3, 2): tilt ≈ [1, x, y] @ fit (x, y in m)."""
+    axes = rotate(quaternion, np.eye(3))  # (n, 3, 3): the body's x, y, z axes in the table frame
+    rows = np.arange(len(axes))
+    vertical = np.abs(axes[..., 2]).argmax(1)
+    up = axes[rows, vertical] * np.sign(axes[rows, vertical, 2])[:, None]
+    tilt = up[:, :2]
+    fit, *_ = np.linalg.lstsq(np.column_stack([np.ones(len(position)), position[:, :2]]), tilt, rcond=None)
+    return tilt, fit
+
+
 def resting_poses(quaternion: np.ndarray, position: np.ndarray) -> dict:
     """What the tosses' last frames (quaternion (n, 4), position (n, 3) in m above the table) say of the tracking.
 
@@ -48,13 +70,8 @@ def resting_poses(quaternion: np.ndarray, position: np.ndarray) -> dict:
     table has its upward axis vertical: the tilt of that axis, in the table's frame, is the tracking's error of
     orientation or the table's slope where the cube rests, and the second would follow where it rests."""
     faces = np.array(face_down(quaternion))
-    axes = rotate(quaternion, np.eye(3))  # (n, 3, 3): the body's x, y, z axes in the table frame
-    rows = np.arange(len(axes))
-    vertical = np.abs(axes[..., 2]).argmax(1)
-    up = axes[rows, vertical] * np.sign(axes[rows, vertical, 2])[:, None]
-    tilt = up[:, :2]  # (n, 2): the upward axis's horizontal part, radians to first order
+    tilt, coef = resting_tilt(quaternion, position)
     X = np.column_stack([np.ones(len(position)), position[:, :2]])
-    coef, *_ = np.linalg.lstsq(X, tilt, rcond=None)
     r2 = 1 - ((tilt - X @ coef) ** 2).sum(0) / ((tilt - tilt.mean(0)) ** 2).sum(0)
     return {
         "all, last: centre height above the table, median mm": {
@@ -89,18 +106,16 @@ def main() -> None:
         return
 
     if args.faces:
-        result, rest_q, rest_p = {}, [], []
+        result = {}
         for split in ("train", "val", "test"):
             tosses, _ = recorded_tosses(args.data, split)
             last = face_down(tosses.quaternion[tosses.offsets[1:] - 1])
             first = face_down(tosses.quaternion[tosses.offsets[:-1]])
             result[split] = {"last": {f: last.count(f) for f in FACES}, "first": {f: first.count(f) for f in FACES}}
-            rest_q.append(tosses.quaternion[tosses.offsets[1:] - 1])
-            rest_p.append(tosses.position[tosses.offsets[1:] - 1])
         for when in ("last", "first"):
             counts = [sum(result[s][when][f] for s in ("train", "val", "test")) for f in FACES]
             result[f"all, {when}: chi-square p"] = float(chisquare(counts).pvalue)
-        result |= resting_poses(np.concatenate(rest_q), np.concatenate(rest_p))
+        result |= resting_poses(*resting_frames(args.data))
         print(json.dumps(result, indent=1))
         return
 

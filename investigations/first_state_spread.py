@@ -12,7 +12,12 @@ out over the whole toss with the task file's (nominal) values, and the script re
   state's own uncertainty accounts for;
 - the mean error of the drawn rollouts against the recording, and of the best draw of each toss.
 
+- the final face: on how many tosses the unperturbed rollout ends on the recorded face, and for those where it does
+  not, in how many draws it does (a toss that some draws bring to the recorded face sits near a boundary between
+  outcomes that its first state's uncertainty crosses).
+
     python investigations/first_state_spread.py data/CubeToss --split val --draws 6
+    python investigations/first_state_spread.py data/CubeToss --split test --run runs/CubeToss/CM-CD-CLNN/seed0
 """
 
 from __future__ import annotations
@@ -25,8 +30,11 @@ import json
 
 import numpy as np
 import torch
+from com_offset import resting_frames, resting_tilt  # (the script beside this one)
 
 from diffcontact.data import measured
+from diffcontact.eval.loading import load_run
+from diffcontact.eval.pose_metrics import face_down
 from diffcontact.eval.rollouts import predict
 from diffcontact.eval.tosses import recorded_tosses
 from diffcontact.models.model import known_model
@@ -66,6 +74,17 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=6)
     parser.add_argument("--task", default="CubeToss")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--run", help="a trained run's model instead of the task file's nominal values")
+    parser.add_argument(
+        "--tilt-correction",
+        type=float,
+        default=0.0,
+        help="turn each first rotation back by this multiple of the tracking's tilt where the cube is, as fitted on "
+        "the resting frames (com_offset.py --faces)",
+    )
+    parser.add_argument(
+        "--rotation-sd", type=float, help="deg: draw the first rotation with this spread instead of the pose noise's"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -79,22 +98,35 @@ def main() -> None:
 
     p0, v0, w0 = measured.first_states(tosses, height, half)
     q0 = tosses.quaternion[tosses.offsets[:-1]]
+    if args.tilt_correction:
+        _, fit = resting_tilt(*resting_frames(args.data))
+        tilt = args.tilt_correction * np.column_stack([np.ones(len(p0)), p0[:, :2]]) @ fit  # (n, 2), rad
+        back = torch.from_numpy(np.column_stack([tilt[:, 1], -tilt[:, 0], np.zeros(len(tilt))]))  # the turn undone
+        q0 = matrix_to_quaternion(torch.linalg.matrix_exp(hat(back)) @ quaternion_to_matrix(torch.from_numpy(q0)))
+        q0 = q0.numpy()
     n, K, T = len(p0), args.draws, int(tosses.lengths.max())
     rng = np.random.default_rng(args.seed)
     pv = np.einsum("ij,knjc->knic", chol, rng.standard_normal((K, n, 2, 3)))
-    turn = torch.from_numpy(rng.standard_normal((K, n, 3)) * sigma_r)
+    turn_sd = np.radians(args.rotation_sd) if args.rotation_sd is not None else sigma_r
+    turn = torch.from_numpy(rng.standard_normal((K, n, 3)) * turn_sd)
     q = matrix_to_quaternion(quaternion_to_matrix(torch.from_numpy(q0)) @ torch.linalg.matrix_exp(hat(turn))).numpy()
     draws = (p0 + pv[:, :, 0], q, v0 + pv[:, :, 1], w0 + rng.standard_normal((K, n, 3)) * sigma_w)
     central = (p0[None], q0[None], v0[None], w0[None])
 
-    net = known_model(build_task(args.task))
+    net = load_run(args.run).net if args.run else known_model(build_task(args.task))
     keep = np.arange(T)[None] < tosses.lengths[:, None]
+
+    last = tosses.lengths - 1
+    recorded_face = face_down(tosses.quaternion[tosses.offsets[1:] - 1])
+    faces = []  # (n,) final faces of each rollout, in the order rolled
 
     def rollout(p, q, v, w) -> np.ndarray:  # (k, n, ...) first states -> (k, n, T, 3) predicted centres, m
         arrays = (p - [0.0, 0.0, height], q, v, w)
         x, xv = pose_to_points(*(torch.from_numpy(np.ascontiguousarray(a).reshape(-1, a.shape[-1])) for a in arrays))
         x_hat, v_hat = predict(net, x, xv, T)
-        position, _, _, _ = points_to_pose(x_hat.double().flatten(0, 1), v_hat.double().flatten(0, 1))
+        position, quaternion, _, _ = points_to_pose(x_hat.double().flatten(0, 1), v_hat.double().flatten(0, 1))
+        quaternion = quaternion.numpy().reshape(p.shape[0], n, T, 4)
+        faces.extend(face_down(quaternion[k, np.arange(n), last]) for k in range(p.shape[0]))
         return position.numpy().reshape(p.shape[0], n, T, 3) + [0.0, 0.0, height]
 
     def error(a, b) -> np.ndarray:  # (..., n, T, 3) -> (..., n) mean over each toss's frames, % of the width
@@ -106,6 +138,7 @@ def main() -> None:
         recorded[i, : tosses.lengths[i]] = tosses.position[tosses.frames_of(i)]
     centre, drawn = rollout(*central)[0], rollout(*draws)
     pairs = [error(drawn[a], drawn[b]).mean() for a in range(K) for b in range(a + 1, K)]
+    same = np.array(faces) == recorded_face  # (1 + K, n): the unperturbed rollout, then the draws
     against = error(drawn, recorded)
     result = {
         "split": args.split,
@@ -116,7 +149,7 @@ def main() -> None:
             "position_mm": float(chol[0, 0] * 1e3),
             "velocity_m_s": float(np.hypot(chol[1, 0], chol[1, 1])),
             "omega_rad_s": float(sigma_w),
-            "rotation_deg": float(np.degrees(sigma_r)),
+            "rotation_deg": float(np.degrees(turn_sd)),
         },
         "position_error_pct": {
             "unperturbed_vs_recorded": float(error(centre, recorded).mean()),
@@ -125,6 +158,13 @@ def main() -> None:
             "drawn_vs_recorded": float(against.mean()),
             "best_draw_vs_recorded": float(against.min(0).mean()),
         },
+    }
+    result["final_face"] = {
+        "unperturbed_on_recorded_face": int(same[0].sum()),
+        "draws_on_recorded_face_where_unperturbed_is_not": {
+            int(tosses.toss_id[i]): f"{int(same[1:, i].sum())} of {K}" for i in np.flatnonzero(~same[0])
+        },
+        "tosses_where_some_draws_differ_from_the_unperturbed": int((same[1:] != same[:1]).any(0).sum()),
     }
     print(json.dumps(result, indent=1))
 
