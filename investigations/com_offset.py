@@ -31,13 +31,12 @@ from diffcontact.models.model import known_model
 from diffcontact.systems.poses import rotate
 from diffcontact.systems.registry import build_task
 
-FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
-FACE_NAMES = ("-x", "+x", "-y", "+y", "-z", "+z")  # (the numbering of pose_metrics.face_down)
+FACES = ("-x", "+x", "-y", "+y", "-z", "+z")  # (the numbering of pose_metrics.face_down)
 
 
 def face_down(quaternion: np.ndarray) -> list[str]:
     """The body face that points most nearly down, named as in ``FACES``, for each quaternion (n, 4), w first."""
-    return [FACE_NAMES[i] for i in pose_metrics.face_down(quaternion)]
+    return [FACES[i] for i in pose_metrics.face_down(quaternion)]
 
 
 def resting_frames(data) -> tuple[np.ndarray, np.ndarray]:

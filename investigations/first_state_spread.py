@@ -10,8 +10,7 @@ out over the whole toss with the task file's (nominal) values, and the script re
 - the mean error of the unperturbed rollout against the recording;
 - the mean distance of the drawn rollouts from the unperturbed one, and between two drawn rollouts: what the first
   state's own uncertainty accounts for;
-- the mean error of the drawn rollouts against the recording, and of the best draw of each toss.
-
+- the mean error of the drawn rollouts against the recording, and of the best draw of each toss;
 - the final face: on how many tosses the unperturbed rollout ends on the recorded face, and for those where it does
   not, in how many draws it does (a toss that some draws bring to the recorded face sits near a boundary between
   outcomes that its first state's uncertainty crosses).
@@ -118,16 +117,16 @@ def main() -> None:
 
     last = tosses.lengths - 1
     recorded_face = face_down(tosses.quaternion[tosses.offsets[1:] - 1])
-    faces = []  # (n,) final faces of each rollout, in the order rolled
 
-    def rollout(p, q, v, w) -> np.ndarray:  # (k, n, ...) first states -> (k, n, T, 3) predicted centres, m
+    def rollout(p, q, v, w) -> tuple[np.ndarray, np.ndarray]:
+        """(k, n, ...) first states -> (k, n, T, 3) predicted centres (m) and (k, n) final faces."""
         arrays = (p - [0.0, 0.0, height], q, v, w)
         x, xv = pose_to_points(*(torch.from_numpy(np.ascontiguousarray(a).reshape(-1, a.shape[-1])) for a in arrays))
         x_hat, v_hat = predict(net, x, xv, T)
         position, quaternion, _, _ = points_to_pose(x_hat.double().flatten(0, 1), v_hat.double().flatten(0, 1))
-        quaternion = quaternion.numpy().reshape(p.shape[0], n, T, 4)
-        faces.extend(face_down(quaternion[k, np.arange(n), last]) for k in range(p.shape[0]))
-        return position.numpy().reshape(p.shape[0], n, T, 3) + [0.0, 0.0, height]
+        final = quaternion.numpy().reshape(p.shape[0], n, T, 4)[:, np.arange(n), last]
+        faces = face_down(final.reshape(-1, 4)).reshape(p.shape[0], n)
+        return position.numpy().reshape(p.shape[0], n, T, 3) + [0.0, 0.0, height], faces
 
     def error(a, b) -> np.ndarray:  # (..., n, T, 3) -> (..., n) mean over each toss's frames, % of the width
         e = np.linalg.norm(a - b, axis=-1) / (2 * half[0]) * 100
@@ -136,9 +135,10 @@ def main() -> None:
     recorded = np.zeros((n, T, 3))
     for i in range(n):
         recorded[i, : tosses.lengths[i]] = tosses.position[tosses.frames_of(i)]
-    centre, drawn = rollout(*central)[0], rollout(*draws)
+    (centre, centre_face), (drawn, drawn_faces) = rollout(*central), rollout(*draws)
+    centre = centre[0]
     pairs = [error(drawn[a], drawn[b]).mean() for a in range(K) for b in range(a + 1, K)]
-    same = np.array(faces) == recorded_face  # (1 + K, n): the unperturbed rollout, then the draws
+    same = np.concatenate([centre_face, drawn_faces]) == recorded_face  # (1 + K, n): unperturbed, then the draws
     against = error(drawn, recorded)
     result = {
         "split": args.split,
