@@ -1,13 +1,15 @@
 """A trained run's whole-toss errors with one of its learned values changed, the rest of the model as trained, scored
 on a split's whole tosses as ``evaluate`` scores them. For μ, what ``train/calibrate.py`` searches, laid out on a
 grid (docs/real_data.md, "How far μ sets the slide"); for the centre of mass and the moments, whether a calibration
-of them would gain too (docs/results.md, "Real data").
+of them would gain too (docs/results.md, "Real data"); rounded edges (docs/real_data.md, "What the model does not
+fit").
 
     python investigations/run_scan.py runs/cubetoss-com/seed0 data/CubeToss --split train --mu 0.166 0.170 0.174
     python investigations/run_scan.py runs/cubetoss-com/seed1 data/CubeToss --split val --offset -0.004 0 0.004
     python investigations/run_scan.py runs/cubetoss-cal/seed1 data/CubeToss --split val --com-z -0.0015 0 0.0015
     python investigations/run_scan.py runs/cubetoss-cal/seed1 data/CubeToss --split val --moments-scale 0.9 1.1
     python investigations/run_scan.py runs/cubetoss-com/seed0 data/CubeToss --split val --checkpoint last.ckpt
+    python investigations/run_scan.py runs/CubeToss/CM-CD-CLNN/seed0 data/CubeToss --split val --corner-radius 0 0.002
 """
 
 from __future__ import annotations
@@ -38,11 +40,20 @@ def main() -> None:
     values.add_argument("--offset", type=float, nargs="+", help="values added to the run's μ")
     values.add_argument("--com-z", type=float, nargs="+", help="m added to the centre of mass along the body's z")
     values.add_argument("--moments-scale", type=float, nargs="+", help="factors of the three second moments")
+    values.add_argument(
+        "--corner-radius",
+        type=float,
+        nargs="+",
+        help="m: the box's edges rounded (the corners drawn in by r and every gap less r: the box grown by a sphere)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     run = Path(args.run)
     net = load_run(run, checkpoint=run / "checkpoints" / args.checkpoint if args.checkpoint else None).net
     p = net.params
+    if args.corner_radius:
+        rounded(net, args)
+        return
     if args.com_z or args.moments_scale:
         raw = p.com_raw if args.com_z else p.log_moments
         if args.com_z:  # (com = com_raw × a fixed scale: its value per unit of com_raw)
@@ -70,6 +81,26 @@ def main() -> None:
     record = {"run": args.run, "split": args.split, "checkpoint": args.checkpoint, "rows": rows}
     learned = {"mu": p.mu.detach().tolist(), "centre_of_mass_m": p.inertia.com.detach().tolist()}
     print(json.dumps(record | learned, indent=1))
+
+
+def rounded(net, args) -> None:
+    """Score the run with its box's edges rounded by each radius r: the 8 corners at (a − r) of their half-extents
+    and every gap less r, which is the gap of the box grown by a sphere of radius r to a plane (the face-down
+    resting height unchanged; friction still acts at the drawn-in corner, r below the rounded contact point)."""
+    (kind,) = net.simulator.system.detector.kinds
+    weights, offset = kind.weights.clone(), kind.c.clone()
+    half = weights[:, 1:].abs().amax(0)  # (3,) the half-extents in the body points' units
+    rows = []
+    for r in args.corner_radius:
+        started = time.perf_counter()
+        vertex = weights[:, 1:] * (1 - r / half)
+        kind.weights = torch.cat([1.0 - vertex.sum(-1, keepdim=True), vertex], dim=-1)
+        kind.c = offset - r
+        m = score_tosses(predict_tosses(net, args.data, args.split), args.data, args.split)
+        rows.append({"corner_radius_m": r, "seconds": time.perf_counter() - started} | m)
+        print(f"r {r * 1000:.2f} mm: position {m['position_error_pct']:.2f} %, rotation {m['rotation_error_deg']:.2f}°")
+    kind.weights, kind.c = weights, offset
+    print(json.dumps({"run": args.run, "split": args.split, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ import pytest
 from diffcontact import build_task
 from diffcontact.data.measured import import_tosses
 from diffcontact.data.tosses import save_contactnets_npz, simulated_tosses
+from diffcontact.eval.spread import spread
 from diffcontact.train.run import train_run
 
 RECOVERED = 0.02  # |learned − true| of μ and e
@@ -53,5 +54,11 @@ def test_cube_tosses_recorded_imported_and_learned(tmp_path, com):
 
     metrics = evaluate_run(tmp_path / "run", pictures=False)
     assert metrics["learned"]["centre_of_mass"]["learned"] == learned_com and metrics["tosses"] == 2
+    assert learned["g"] == pytest.approx(9.81) and learned["g_learned"] is False  # (the task's gravity, given)
+    # what `diffcontact spread` reads of a real run: the learned values, the table and the evaluation
+    values = spread([tmp_path / "run", tmp_path / "run"])["values"]
+    assert values["mu[0]"]["mean"] == learned["mu"]["learned"][0] and values["mu[0]"]["std"] == 0
+    assert values["eval.position_error_pct"]["runs"] == [metrics["position_error_pct"]] * 2
+    assert {"g", "table_height_m", "centre_of_mass[2]", "moments[2]"} <= set(values)
     assert abs(summary["mu"]["learned"][0] - 0.18) <= RECOVERED, summary["mu"]
     assert abs(summary["e"]["learned"][0] - 0.125) <= RECOVERED, summary["e"]

@@ -300,6 +300,26 @@ def summarize(run: str = typer.Argument(..., help="Run directory of a finished `
     typer.echo(json.dumps(shown))
 
 
+@app.command("spread")
+def spread(
+    runs: list[str] = typer.Argument(..., help="Run directories of one task and model (e.g. seeds 0, 1, 2)."),
+    eval_name: str = typer.Option("eval", "--eval", help="Each run's evaluation folder whose metrics are included."),
+    out: str = typer.Option("", "--out", help="Also write the values as JSON to this file."),
+) -> None:
+    """The learned values (μ, e, inertia, centre of mass, g, table height) and the evaluation of several runs side by
+    side: each run's value, their mean, standard deviation and range."""
+    from diffcontact.eval.spread import spread as runs_spread
+    from diffcontact.eval.spread import spread_table
+    from diffcontact.files import check_output, versions, write_json
+
+    with _user_errors():
+        target = check_output(out, "--out") if out else None
+        result = runs_spread(runs, eval_name)
+        if target is not None:
+            write_json(target, result | {"versions": versions()})
+    typer.echo(spread_table(result))
+
+
 @app.command("evaluate")
 def evaluate(
     run: str = typer.Argument(..., help="Run directory of a finished `diffcontact train`."),

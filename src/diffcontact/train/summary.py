@@ -22,6 +22,7 @@ from typing import Any
 import torch
 
 from diffcontact.dynamics.inertia import body_blocks, dense
+from diffcontact.dynamics.potentials import Gravity, SumPotential
 from diffcontact.models.params import LearnedGravity
 from diffcontact.state import Inertia
 from diffcontact.systems.base import System
@@ -133,7 +134,8 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noi
     tasks share one value, identifiable if any slot is); mass ratio = mass / mass of the first body; moments
     (extended bodies only): second moments per unit mass in m², body by body and axis by axis (see the module
     docstring for what of them is identifiable); centre_of_mass (the box): in m, body frame, from its centre;
-    inertia: ``inertia_spread``, what is.
+    inertia: ``inertia_spread``, what is; g (m/s², with ``g_learned``): the gravity of a learned-gravity potential,
+    or of the task's own potential where it is given and holds one.
     """
     from diffcontact.models.baselines import Baseline
 
@@ -167,7 +169,11 @@ def learned_summary(net, task, chunk_x: torch.Tensor, chunk_v: torch.Tensor, noi
     # (at the first frames of up to 64 chunks)
     out["inertia"] = inertia_spread(task.system, learned.inertia, truth.inertia, chunk_x[:64, 0].detach())
     if isinstance(learned.potential, LearnedGravity):
-        out["g"] = float(learned.potential.g.detach())
+        out["g"], out["g_learned"] = float(learned.potential.g.detach()), True
+    elif isinstance(learned.potential, SumPotential):  # (the task's own potential, given: its gravity if it has one)
+        given = [t.g for t in learned.potential.terms if isinstance(t, Gravity)]
+        if len(given) == 1:
+            out["g"], out["g_learned"] = float(given[0]), False
     out["collisions"] = counts["collisions"].tolist()
     out["collisions_slipping"] = counts["slipping"].tolist()
     out["collisions_bound"] = counts["bound"].tolist()
