@@ -9,6 +9,7 @@ from typer.testing import CliRunner
 
 from diffcontact.cli import app
 from diffcontact.data.store import load_meta
+from diffcontact.eval.toss_sweep import figure_points, sweep_figure
 
 
 @pytest.mark.slow
@@ -107,3 +108,15 @@ def test_trained_cells_go_to_the_backend_and_a_failed_one_is_named_after_the_oth
     with pytest.raises(DiffContactError):
         toss_sweep("sample", out, sizes=(4,), methods=methods, epochs=2, jobs=1, threads=3, echo=lambda _: None)
     assert [a[0] for a in asked] == ["IN-CP-CLNN"]
+
+
+def test_the_figure_draws_diverged_cells_as_marks_not_values(tmp_path):
+    table = {
+        "CM-CD-CLNN": {"16": {"position_error_pct": 9.9}, "8": {"position_error_pct": 9.8}},
+        "MLP-CD-CLNN": {"8": {"position_error_pct": 7.4e140}, "16": {"position_error_pct": 88.0}},
+        "IN-CP-CLNN": {"8": {"position_error_pct": float("inf")}},
+    }
+    points = figure_points(table)
+    assert points["CM-CD-CLNN"] == ([(8, 9.8), (16, 9.9)], [])  # (sorted by N, as numbers, not text)
+    assert points["MLP-CD-CLNN"] == ([(16, 88.0)], [8]) and points["IN-CP-CLNN"] == ([], [8])
+    assert sweep_figure(table, tmp_path / "sweep.png").stat().st_size > 0

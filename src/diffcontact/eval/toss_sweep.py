@@ -27,6 +27,7 @@ SIZES = (8, 16, 32, 64, 128, 256)
 METHODS = ("CM-CD-CLNN", "CMr-CD-CLNN", "MLP-CD-CLNN", "IN-CP-CLNN", "mujoco", "bullet", "nominal")
 PEERS = ("mujoco", "bullet")
 REFERENCE = "CM-CD-CLNN"  # the method the others are set against, toss by toss
+DIVERGED = 1e4  # % of the width: a cell's mean position error at or above this is a rollout that left the data
 METRICS = {
     "position_error_pct": "position error (% of the width)",
     "rotation_error_deg": "rotation error (degrees)",
@@ -233,7 +234,7 @@ def sweep_markdown(table: dict[str, dict[str, dict]], paired: dict[str, dict[str
 
 
 def _interval(d: dict) -> str:
-    if not all(np.isfinite([d["mean"], d["lo"], d["hi"]])) or max(abs(d["lo"]), abs(d["hi"])) >= 1e4:
+    if not all(np.isfinite([d["mean"], d["lo"], d["hi"]])) or max(abs(d["lo"]), abs(d["hi"])) >= DIVERGED:
         return "diverged"
     return f"{d['mean']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]"
 
@@ -243,24 +244,46 @@ def _number(value: float | None) -> str:
         return "not recorded"
     if isinstance(value, int):  # (a count: the tosses that end on the recorded face)
         return str(value)
-    return f"{value:.2f}" if abs(value) < 1e4 else f"{value:.2g} (diverged)"
+    return f"{value:.2f}" if abs(value) < DIVERGED else f"{value:.2g} (diverged)"
+
+
+def figure_points(table: dict[str, dict[str, dict]]) -> dict[str, tuple[list, list]]:
+    """Per method, the (N, position error %) points of the cells scored, sorted by N, and the N of its cells that
+    diverged (a mean error that is not finite or at least ``DIVERGED``): those are drawn as marks, not values."""
+    out = {}
+    for method, cells in table.items():
+        scored = sorted((int(k), c["position_error_pct"]) for k, c in cells.items() if k != "all")
+        kept = [(n, e) for n, e in scored if np.isfinite(e) and e < DIVERGED]
+        out[method] = (kept, [n for n, e in scored if (n, e) not in kept])
+    return out
 
 
 def sweep_figure(table: dict[str, dict[str, dict]], path: Path) -> Path:
-    """Position error (% of the width) against the number of training tosses, one line per method."""
+    """Position error (% of the width) against the number of training tosses, one line per method; the cells of a
+    method that diverged as crosses along the top edge."""
     from diffcontact.eval.plots import _pyplot
     from diffcontact.files import save_figure
 
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.0, 4.0))
-    for method, cells in table.items():
-        pts = sorted((int(k), c["position_error_pct"]) for k, c in cells.items() if k != "all")
-        if pts:
-            ax.plot(*np.array(pts).T, marker="o", label=method)
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    points = figure_points(table)
+    scored = [e for kept, _ in points.values() for _, e in kept] or [1.0]
+    top = 1.15 * max(scored)
+    marks = 0  # (each diverged method's crosses at its own height below the top edge)
+    for method, (kept, diverged) in points.items():
+        colour = None
+        if kept:
+            (line,) = ax.plot(*np.array(kept).T, marker="o", label=method)
+            colour = line.get_color()
+        if diverged:
+            marks += 1
+            ax.plot(diverged, [(1 - 0.035 * marks) * top] * len(diverged), "x", color=colour, ms=8,
+                    label=f"{method}: diverged")  # fmt: skip
+    ax.set_ylim(0.8 * min(scored), top)
     ax.set_xscale("log", base=2)
     ax.set_xlabel("training tosses N")
-    ax.set_ylabel("position error (% of the width)")
-    ax.legend(fontsize=8)
+    ax.set_ylabel("position error on the test tosses (% of the width)")
+    ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path, dpi=100)
     plt.close(fig)
