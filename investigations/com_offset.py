@@ -49,6 +49,11 @@ def resting_frames(data) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(q), np.concatenate(p)
 
 
+def on_table(xy: np.ndarray) -> np.ndarray:
+    """The rows [1, x, y] (n, 3) of a linear fit on where the cube is on the table, x, y (n, 2) in m."""
+    return np.column_stack([np.ones(len(xy)), xy])
+
+
 def resting_tilt(quaternion: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The tilt (n, 2) of each resting cube's upward axis (its table-x and -y parts, rad to first order) and its
     linear fit on where the cube rests, (3, 2): tilt ≈ [1, x, y] @ fit (x, y in m)."""
@@ -57,7 +62,7 @@ def resting_tilt(quaternion: np.ndarray, position: np.ndarray) -> tuple[np.ndarr
     vertical = np.abs(axes[..., 2]).argmax(1)
     up = axes[rows, vertical] * np.sign(axes[rows, vertical, 2])[:, None]
     tilt = up[:, :2]
-    fit, *_ = np.linalg.lstsq(np.column_stack([np.ones(len(position)), position[:, :2]]), tilt, rcond=None)
+    fit, *_ = np.linalg.lstsq(on_table(position[:, :2]), tilt, rcond=None)
     return tilt, fit
 
 
@@ -70,7 +75,7 @@ def resting_poses(quaternion: np.ndarray, position: np.ndarray) -> dict:
     orientation or the table's slope where the cube rests, and the second would follow where it rests."""
     faces = np.array(face_down(quaternion))
     tilt, coef = resting_tilt(quaternion, position)
-    X = np.column_stack([np.ones(len(position)), position[:, :2]])
+    X = on_table(position[:, :2])
     r2 = 1 - ((tilt - X @ coef) ** 2).sum(0) / ((tilt - tilt.mean(0)) ** 2).sum(0)
     return {
         "all, last: centre height above the table, median mm": {

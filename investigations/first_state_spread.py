@@ -29,7 +29,7 @@ import json
 
 import numpy as np
 import torch
-from com_offset import resting_frames, resting_tilt  # (the script beside this one)
+from com_offset import on_table, resting_frames, resting_tilt  # (the script beside this one)
 
 from diffcontact.data import measured
 from diffcontact.eval.loading import load_run
@@ -99,7 +99,7 @@ def main() -> None:
     q0 = tosses.quaternion[tosses.offsets[:-1]]
     if args.tilt_correction:
         _, fit = resting_tilt(*resting_frames(args.data))
-        tilt = args.tilt_correction * np.column_stack([np.ones(len(p0)), p0[:, :2]]) @ fit  # (n, 2), rad
+        tilt = args.tilt_correction * on_table(p0[:, :2]) @ fit  # (n, 2), rad
         back = torch.from_numpy(np.column_stack([tilt[:, 1], -tilt[:, 0], np.zeros(len(tilt))]))  # the turn undone
         q0 = matrix_to_quaternion(torch.linalg.matrix_exp(hat(back)) @ quaternion_to_matrix(torch.from_numpy(q0)))
         q0 = q0.numpy()

@@ -3,7 +3,7 @@ runs, mean, sample standard deviation and range. ``diffcontact spread RUN...``."
 
 from __future__ import annotations
 
-import math
+import statistics
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -15,9 +15,8 @@ METRICS = ("position_error_pct", "rotation_error_deg", "penetration_pct", "same_
 
 
 def _row(values: list[float]) -> dict:
-    mean = sum(values) / len(values)
-    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else None
-    return {"runs": values, "mean": mean, "std": std, "min": min(values), "max": max(values)}
+    std = statistics.stdev(values) if len(values) > 1 else None
+    return {"runs": values, "mean": statistics.fmean(values), "std": std, "min": min(values), "max": max(values)}
 
 
 def _scalars(learned: dict, metrics: dict | None) -> dict[str, float]:

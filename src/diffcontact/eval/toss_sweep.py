@@ -233,8 +233,13 @@ def sweep_markdown(table: dict[str, dict[str, dict]], paired: dict[str, dict[str
     return "\n".join(lines)
 
 
+def _diverged(value: float) -> bool:
+    """A mean error (% of the width) of rollouts that left the data: not finite, or at least ``DIVERGED``."""
+    return not (np.isfinite(value) and abs(value) < DIVERGED)
+
+
 def _interval(d: dict) -> str:
-    if not all(np.isfinite([d["mean"], d["lo"], d["hi"]])) or max(abs(d["lo"]), abs(d["hi"])) >= DIVERGED:
+    if any(_diverged(d[k]) for k in ("mean", "lo", "hi")):
         return "diverged"
     return f"{d['mean']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]"
 
@@ -244,17 +249,16 @@ def _number(value: float | None) -> str:
         return "not recorded"
     if isinstance(value, int):  # (a count: the tosses that end on the recorded face)
         return str(value)
-    return f"{value:.2f}" if abs(value) < DIVERGED else f"{value:.2g} (diverged)"
+    return f"{value:.2g} (diverged)" if _diverged(value) else f"{value:.2f}"
 
 
 def figure_points(table: dict[str, dict[str, dict]]) -> dict[str, tuple[list, list]]:
     """Per method, the (N, position error %) points of the cells scored, sorted by N, and the N of its cells that
-    diverged (a mean error that is not finite or at least ``DIVERGED``): those are drawn as marks, not values."""
+    diverged (``_diverged``): those are drawn as marks, not values."""
     out = {}
     for method, cells in table.items():
         scored = sorted((int(k), c["position_error_pct"]) for k, c in cells.items() if k != "all")
-        kept = [(n, e) for n, e in scored if np.isfinite(e) and e < DIVERGED]
-        out[method] = (kept, [n for n, e in scored if (n, e) not in kept])
+        out[method] = ([(n, e) for n, e in scored if not _diverged(e)], [n for n, e in scored if _diverged(e)])
     return out
 
 
