@@ -16,6 +16,10 @@ last one given that has it evaluated makes the row; a cell that none has is a ro
 
 from __future__ import annotations
 
+import diffcontact  # noqa: F401  (before torch: it sets OpenMP's wait policy)
+
+# isort: split
+
 import argparse
 import json
 from pathlib import Path

@@ -29,6 +29,10 @@ if TYPE_CHECKING:
 
 #: The penetration compensation of a task file without ``contact.compensation``: 1/8 of depth/dt (published).
 COMPENSATION = 0.125
+#: The dtype of a contact event's problems, whatever the state's: A = J_C M̂⁻¹J_Cᵀ assembled in float32 loses its
+#: small eigenvalues where its rows differ in scale (a noisy rope's links compressed to almost nothing: diagonal up to
+#: 7e7, least eigenvalue 0.13), and the impulses and their gradients then follow the rounding, not the model.
+WIDE = torch.float64
 
 
 @dataclass(frozen=True)
@@ -38,6 +42,7 @@ class Phases:
     A: (B', C, C) contact-space inverse inertia; v_before: (B', C) contact velocity before; f_c, f_r: (B', C)
     impulses of compression and restitution; mu: (B', K_c) friction used; lower: (B', K_c) restitution bound
     e·f_c,n; MhJt: (B', D, C) M̂⁻¹J_Cᵀ (velocity change per impulse).
+    Float64 whatever the state's dtype (:data:`WIDE`).
     """
 
     A: torch.Tensor
@@ -47,6 +52,10 @@ class Phases:
     mu: torch.Tensor
     lower: torch.Tensor
     MhJt: torch.Tensor
+
+    def velocity_change(self) -> torch.Tensor:
+        """M̂⁻¹J_Cᵀ(f_c + f_r): (B', D) the velocity jump of the event, float64."""
+        return (self.MhJt @ (self.f_c + self.f_r)[..., None])[..., 0]
 
 
 @dataclass(frozen=True)
@@ -78,14 +87,14 @@ class ContactModel:
         """Both phases' problems and impulses for the colliding elements (see :class:`Phases`)."""
         solve = self.solver
         idx, dc = contacts.index, contacts.dc
-        xs, vs = x[idx], v[idx]
+        xs, vs = x[idx].to(WIDE), v[idx].to(WIDE)
         Bp = xs.shape[0]
-        Jc = contacts.J.to(x)
-        MhJt, A = effective_inverse_inertia(inverse_factor_blocks(params.inertia), constraints, xs, Jc)
+        Jc = contacts.J.to(xs)
+        MhJt, A = effective_inverse_inertia(inverse_factor_blocks(params.inertia).to(WIDE), constraints, xs, Jc)
         A_qp = A + self.reg * torch.eye(A.shape[-1], dtype=A.dtype, device=A.device) if self.reg > 0 else A
-        mu = params.mu.to(x)[contacts.slot]
+        mu = params.mu.to(xs)[contacts.slot]
         mu = torch.where(contacts.frictionless.to(x.device), torch.zeros_like(mu), mu)
-        e = params.e.to(x)[contacts.slot]
+        e = params.e.to(xs)[contacts.slot]
         vC = (Jc @ vs.reshape(Bp, -1, 1))[..., 0]
         f_c = solve(A_qp, vC, mu, None, contacts.active)
         v_target = self.target_velocity(constraints, xs, contacts, dt, A)
@@ -146,7 +155,7 @@ class ContactModel:
         if contacts is None:
             return v, flag
         ph = self.phases(system.constraints, params, x, v, contacts, dt)
-        dv = (ph.MhJt @ (ph.f_c + ph.f_r)[..., None]).reshape(v[contacts.index].shape)
+        dv = ph.velocity_change().reshape(v[contacts.index].shape).to(v)
         flag[contacts.index] = True
         return v.index_put((contacts.index,), v[contacts.index] + dv), flag
 

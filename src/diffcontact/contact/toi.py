@@ -156,7 +156,7 @@ def toi_step(
         if contacts is None:  # (unreachable: every row marks its event's candidate k)
             raise AssertionError("no contact at a time of impact")
         ph = model.phases(system.constraints, params, xc, vc, contacts, dt)
-        vc = vc + (ph.MhJt @ (ph.f_c + ph.f_r)[..., None]).reshape(vc.shape)
+        vc = vc + ph.velocity_change().reshape(vc.shape).to(vc)
         L_after = L - tau
         xe, ve = flow(xc, vc, L_after[:, None, None])
         x, v = x.index_put((rows,), xc), v.index_put((rows,), vc)
