@@ -28,6 +28,40 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 import diffcontact.train.run as run_module
+from diffcontact.solver.problem import solve_cone_qp
+from diffcontact.train.module import ContactLightningModule
+
+
+def nearest_feasible(detector, x: torch.Tensor, iterations: int = 200, reach: float = 0.005) -> torch.Tensor:
+    """Positions (B, P, d) near x (B, P, d) whose every gap is ≥ 0, by up to ``iterations`` linearised steps:
+    dx = J_Cᵀλ with λ = argmin ½λᵀ(J_C J_Cᵀ)λ + gᵀλ, λ ≥ 0 (the least ‖dx‖ with g + J_C dx ≥ 0; the contact solver,
+    frictionless), each step shortened to move no point more than ``reach`` (m: a bend limit crossed by radians is
+    far from linear); on free points (the balls, the rope)."""
+    x = x.detach().double().clone()
+    for _ in range(iterations):
+        contacts = detector.detect(x)
+        if contacts is None:
+            break
+        dc, J = contacts.dc, contacts.J.double()
+        normal = J[:, ::dc]  # (B', K, D): the normal rows
+        A = normal @ normal.mT
+        zero = torch.zeros_like(contacts.gap, dtype=torch.float64)
+        lam = solve_cone_qp(A, contacts.gap.double(), zero, None, contacts.active, on_failure="count")
+        step = (normal.mT @ lam[..., None]).reshape(x[contacts.index].shape)
+        longest = step.norm(dim=-1).amax(-1).clamp_min(reach)  # (B',)
+        x[contacts.index] += step * (reach / longest)[:, None, None]
+    return x
+
+
+def feasible_start(module: ContactLightningModule, data) -> None:
+    """Start the learned first-state corrections of ``module`` at the nearest feasible state of each chunk's first
+    frame (``nearest_feasible``), the velocities as recorded."""
+    detector = module.task.system.detector
+    for split, states in module.first_states.items():
+        if states.coords is not None:
+            raise SystemExit("--feasible-start: first states in noise coordinates are not supported")
+        x0 = data.splits[split].chunk_x[:, 0]
+        states.dx.copy_((nearest_feasible(detector, x0) - x0.double()).to(states.dx))
 
 
 class StepTrace(pl.Callback):
@@ -109,6 +143,11 @@ def main() -> None:
         "the median of the last 50 is a spike: the module before it and its batch are saved",
     )
     parser.add_argument("--keep", type=int, default=10, help="spikes saved at most")
+    parser.add_argument(
+        "--feasible-start",
+        action="store_true",
+        help="first-state corrections start at the nearest state that meets every limit",
+    )
     args = parser.parse_args()
     out = Path(args.out)
     made = run_module._trainer
@@ -123,6 +162,15 @@ def main() -> None:
         return trainer, checkpoints
 
     run_module._trainer = traced
+    if args.feasible_start:
+        started = ContactLightningModule.on_fit_start
+
+        def on_fit_start(module: ContactLightningModule) -> None:
+            started(module)
+            if module.current_epoch == 0 and module.first_states:
+                feasible_start(module, module.trainer.datamodule)
+
+        ContactLightningModule.on_fit_start = on_fit_start
     torch.set_num_threads(1)
     run_module.train_run(args.task, args.model, out=out, resume=args.resume, progress=False, data_root=args.data,
                          seed=args.seed)  # fmt: skip
