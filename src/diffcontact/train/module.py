@@ -21,7 +21,6 @@ solver failures are each process's own and are summed over the processes (``tota
 from __future__ import annotations
 
 import logging
-import statistics
 import time
 import warnings
 from collections import Counter
@@ -44,12 +43,6 @@ from diffcontact.train.first_states import FirstStates
 log = logging.getLogger(__name__)
 
 KEEP_FAILED = 100  # failed contact problems a training run keeps for diagnosis (RUN/solver_failures.npz)
-# A step's gradient whose norm is above CLIP_FACTOR × the median of the last CLIP_WINDOW steps' is scaled down to that
-# bound (once CLIP_HISTORY steps are known).  One chunk whose rollout passes near a singular geometry (a noisy rope's
-# nodes almost together) can have a gradient hundreds of times the others', and Adam then moves every parameter by
-# about 30 × its rate along it: the masses of the noisy Rope by a third in an epoch (docs/results.md, "Noisy data").
-# On clean BP5-e no step came within 5.2 × the median (130 epochs of the main job traced): the bound never acts.
-CLIP_FACTOR, CLIP_WINDOW, CLIP_HISTORY = 10.0, 100, 20
 
 _FAILED = [s.name for s in Status if is_failure(s)]  # (the statuses counted as solver failures)
 
@@ -107,8 +100,6 @@ class ContactLightningModule(pl.LightningModule):
         self.solver = ContactSolver(on_failure="count", keep=KEEP_FAILED)
         self._failures_before: Counter[str] = Counter()  # (restored from a checkpoint)
         self.skipped_steps = 0  # (optimiser steps skipped: the same on every process)
-        self.clipped_steps = 0  # (steps whose gradient was scaled down to the bound: ``_clip``)
-        self.gradient_norms: list[float] = []  # (the last CLIP_WINDOW steps', before clipping)
         self.forward_failures = 0  # (this process's)
         self.seconds_before = 0.0  # (the wall time of a resumed run's earlier sessions, from its checkpoint)
         self._fit_started = time.perf_counter()
@@ -186,7 +177,7 @@ class ContactLightningModule(pl.LightningModule):
 
     def totals(self) -> dict:
         """The counters of the run, summed over its processes (a collective call on several: every process calls it):
-        skipped_steps, clipped_steps, forward_failures, solver_failures and solver_failures_by_status."""
+        skipped_steps, forward_failures, solver_failures and solver_failures_by_status."""
         names = [*_FAILED, "unknown"]  # (the same on every process; "unknown": counts of old checkpoints)
         local = torch.tensor(
             [self.forward_failures, *(self.solver_failures_by_status[n] for n in names)], dtype=torch.float64
@@ -197,7 +188,6 @@ class ContactLightningModule(pl.LightningModule):
         by_status = {n: int(c) for n, c in zip(names, summed[1:].tolist()) if c}
         return dict(
             skipped_steps=self.skipped_steps,
-            clipped_steps=self.clipped_steps,
             forward_failures=int(summed[0]),
             solver_failures=sum(by_status.values()),
             solver_failures_by_status=by_status,
@@ -280,7 +270,6 @@ class ContactLightningModule(pl.LightningModule):
         if all(bool(torch.isfinite(g).all()) for g in grads) and bool(torch.isfinite(loss)):
             if first is not None:  # (before the model's step: a trial is scored under the model of the gradients)
                 self._move_first(batch, "train", first, [t.grad for t in first], cast(torch.Tensor, chunks))
-            self._clip(grads)
             opt.step()
             if self.learns_contacts:
                 self._params.project_()
@@ -294,20 +283,6 @@ class ContactLightningModule(pl.LightningModule):
         value, n = (loss.detach(), len(batch[0])) if failed is None else (torch.zeros(()), 0)
         self.log("train/loss", value, prog_bar=True, on_step=False, on_epoch=True, batch_size=n, sync_dist=True)
         return loss.detach()
-
-    def _clip(self, grads: list[torch.Tensor]) -> None:
-        """Scale ``grads`` (the step's, finite) down to CLIP_FACTOR × the median norm of the last CLIP_WINDOW steps
-        where their norm is above it (counted in ``clipped_steps``); the norm joins the history either way.  After a
-        DDP backward the gradients, so the decision, are the same on every process."""
-        norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
-        history = self.gradient_norms
-        if len(history) >= CLIP_HISTORY:
-            bound = CLIP_FACTOR * statistics.median(history)
-            if norm > bound:
-                for g in grads:
-                    g.mul_(bound / norm)
-                self.clipped_steps += 1
-        self.gradient_norms = (history + [norm])[-CLIP_WINDOW:]
 
     def validation_step(self, batch, batch_idx: int):
         first = self._first(batch, "val")
@@ -346,7 +321,6 @@ class ContactLightningModule(pl.LightningModule):
         self.log_dict(
             {
                 "train/skipped_steps": float(totals["skipped_steps"]),
-                "train/clipped_steps": float(totals["clipped_steps"]),
                 "train/forward_failures": float(totals["forward_failures"]),
                 "train/solver_failures": float(totals["solver_failures"]),
             },
@@ -395,16 +369,13 @@ class ContactLightningModule(pl.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         totals = self.totals()  # (every process writes its checkpoint dictionary; rank 0 its file)
         checkpoint["counters"] = {
-            k: totals[k] for k in ("skipped_steps", "clipped_steps", "forward_failures", "solver_failures_by_status")
+            k: totals[k] for k in ("skipped_steps", "forward_failures", "solver_failures_by_status")
         }
-        checkpoint["counters"]["gradient_norms"] = list(self.gradient_norms)  # (a resumed run clips as it would have)
         checkpoint["counters"]["seconds"] = self.training_seconds()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         counters = checkpoint.get("counters", {})
         self.skipped_steps = counters.get("skipped_steps", 0)
-        self.clipped_steps = counters.get("clipped_steps", 0)
-        self.gradient_norms = list(counters.get("gradient_norms", []))
         self.seconds_before = counters.get("seconds", 0.0)
         # (the run's totals continue on rank 0; checkpoints before the count by status hold the total only)
         first = self._trainer is None or self.global_rank == 0
