@@ -46,7 +46,7 @@ def nearest_feasible(detector, x: torch.Tensor, iterations: int = 200, reach: fl
         normal = J[:, ::dc]  # (B', K, D): the normal rows
         A = normal @ normal.mT
         zero = torch.zeros_like(contacts.gap, dtype=torch.float64)
-        lam = solve_cone_qp(A, contacts.gap.double(), zero, None, contacts.active, on_failure="count")
+        lam = solve_cone_qp(A, contacts.gap.double(), zero, None, contacts.active)  # (raises where a problem fails)
         step = (normal.mT @ lam[..., None]).reshape(x[contacts.index].shape)
         longest = step.norm(dim=-1).amax(-1).clamp_min(reach)  # (B',)
         x[contacts.index] += step * (reach / longest)[:, None, None]
