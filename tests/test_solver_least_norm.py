@@ -519,3 +519,22 @@ def test_a_sliding_face_at_a_tiny_lower_bound_is_solved_with_more_curvature():
     assert info_g.status.tolist() == [Status.CONVERGED]
     f_g.pow(2).sum().backward()
     assert all(bool(torch.isfinite(t.grad).all()) for t in ins)
+
+
+def test_flat_tol_sets_which_small_eigenvalue_is_rounding():
+    """A (2 × 2) with eigenvalues 1 and 1e-8 and the minimiser f* = (1, 2) inside the cones (q = −A f*): by default
+    (1e-6 for a float64 input) the small eigenvalue is rounding, q's tiny part along it is dropped and the answer is
+    the least-norm minimiser of the rest, f*'s part along the large eigenvector; with ``flat_tol`` 1e-10 it is an
+    eigenvalue like any other, and the answer is f*."""
+    c = 2**-0.5
+    R = torch.tensor([[c, -c], [c, c]], dtype=torch.float64)
+    A = (R @ torch.diag(torch.tensor([1.0, 1e-8], dtype=torch.float64)) @ R.T)[None]
+    f_star = torch.tensor([[1.0, 2.0]], dtype=torch.float64)
+    q = -(A @ f_star[..., None])[..., 0]
+    mu = torch.zeros(1, 2, dtype=torch.float64)
+    flat = solve_cone_qp(A, q, mu)
+    assert torch.allclose(flat, (f_star @ R[:, :1]) * R[:, 0], atol=1e-9)  # (1.5, 1.5)
+    assert torch.allclose(solve_cone_qp(A, q, mu, flat_tol=1e-10), f_star, atol=1e-6)
+    for bad in (0.0, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="flat_tol"):
+            solve_cone_qp(A, q, mu, flat_tol=bad)

@@ -120,6 +120,7 @@ def test_every_threshold_is_the_policys_and_docs_solver_md_lists_them_all():
     import re
     from pathlib import Path
 
+    from diffcontact.contact import impulse
     from diffcontact.solver import contact_solver, least_norm, optimality, problem, scaling, status
     from diffcontact.solver.policy import POLICY
 
@@ -135,6 +136,7 @@ def test_every_threshold_is_the_policys_and_docs_solver_md_lists_them_all():
         (least_norm, "ALM_FLOOR"): "alm_floor",
         (least_norm, "ALM_FAR"): "alm_far", (least_norm, "V_ROUNDING"): "v_rounding", (least_norm, "PROX"): "prox",
         (optimality, "MU_CHECKED"): "mu_checked", (scaling, "MU_FREE"): "mu_free", (status, "WEAK_TOL"): "weak_tol",
+        (impulse, "FLAT_TOL"): "wide_flat_tol",
     }  # fmt: skip
     for (module, name), field in bound.items():
         assert getattr(module, name) == getattr(POLICY, field), name

@@ -13,7 +13,7 @@ from diffcontact.systems import BENCHMARK_TASKS, build_task
 SMALL_TASKS = ("BP1", "BP2", "BP3", "BD1", "BD2", "CP1-wall", "CP2-ground", "Billiards")
 
 
-@pytest.mark.parametrize("name", BENCHMARK_TASKS + SMALL_TASKS)
+@pytest.mark.parametrize("name", BENCHMARK_TASKS + SMALL_TASKS + ("Rope50", "Rope100", "Rope200"))
 def test_sampler_starts_out_of_contact_on_the_constraints_and_is_seeded(name):
     task = build_task(name)
     s = task.sample(16, seed=123)
@@ -95,16 +95,17 @@ def test_unknown_task_and_system_are_config_errors():
         build_task("Gyro", overrides={"body": {"moments": [0.2, 0.2]}})
 
 
-def test_rope_limits_hold_within_compensation_tolerance():
+@pytest.mark.parametrize("name, batch", [("Rope", 32), ("Rope50", 8)])
+def test_rope_limits_hold_within_compensation_tolerance(name, batch):
     """Velocity level: after every contact step no active limit still closes (e = 0, rate >= 0).
     Position level: a violation is at most one step of the fastest approach seen (discrete detection), and a
     limit pressed by a force settles where the push c·depth/dt per step balances the acceleration a over a
     step: depth ≈ |a| dt² / (2c); with gravity on a link (a ≈ g/l0) that is 0.0196 rad, which bounds the
     median bend violation; stretch violations stay below 2 % of the rest length at the median."""
-    task = build_task("Rope")
+    task = build_task(name)
     sim = simulator_for(task)
     det = task.system.detector
-    state = task.sample(32, seed=5)
+    state = task.sample(batch, seed=5)
     gaps, worst_rate, fastest = [], 0.0, 0.0
     with torch.no_grad():
         for _ in range(task.frames - 1):
@@ -112,8 +113,8 @@ def test_rope_limits_hold_within_compensation_tolerance():
             v2, _ = sim.contact_model(task.system, task.params, x1, v1, task.dt)
             g = det.gaps(x1)
             rows = det.jacobian(x1)[:, :, 0]
-            before = (rows @ v1.reshape(32, -1, 1))[..., 0]
-            after = (rows @ v2.reshape(32, -1, 1))[..., 0]
+            before = (rows @ v1.reshape(batch, -1, 1))[..., 0]
+            after = (rows @ v2.reshape(batch, -1, 1))[..., 0]
             if (g < 0).any():
                 worst_rate = min(worst_rate, after[g < 0].min().item())
             fastest = max(fastest, (-before).max().item())
@@ -124,7 +125,8 @@ def test_rope_limits_hold_within_compensation_tolerance():
     assert worst_rate > -1e-9
     assert gaps.min().item() > -fastest * task.dt
     c, l0, g = 0.125, 0.05, 9.81
-    bend, stretch = gaps[..., :18], gaps[..., 18:]
+    bends = 2 * (task.system.n_points - 1)  # (both sides of each bend limit, then the stretch limits)
+    bend, stretch = gaps[..., :bends], gaps[..., bends:]
     assert (-bend[bend < 0]).median() < g / l0 * task.dt**2 / (2 * c)
     assert (-stretch[stretch < 0]).median() < 0.02 * l0
 

@@ -21,6 +21,7 @@ from diffcontact.contact.effective_mass import effective_inverse_inertia
 from diffcontact.dynamics.constraints import Constraints
 from diffcontact.dynamics.inertia import inverse_factor_blocks
 from diffcontact.solver.contact_solver import ContactSolver
+from diffcontact.solver.policy import POLICY
 from diffcontact.state import Params
 from diffcontact.threads import one_thread
 
@@ -33,6 +34,12 @@ COMPENSATION = 0.125
 #: small eigenvalues where its rows differ in scale (a noisy rope's links compressed to almost nothing: diagonal up to
 #: 7e7, least eigenvalue 0.13), and the impulses and their gradients then follow the rounding, not the model.
 WIDE = torch.float64
+#: Where an eigenvalue of that A is rounding (a flat direction), relative to its diagonal, for a float64 state of a
+#: system without joints: its flat directions are exact (more contacts than degrees of freedom), so A is flat only to
+#: float64's rounding, far below the solver's default for a float64 input (1e-6).  The others keep the default: a
+#: float32 state's geometry is itself rounded, and the joints of a float64 one hold only to the integrator's drift (a
+#: gyroscope's rim contact then misses the line to its pivot), so that their flat directions come out at that level.
+FLAT_TOL = POLICY.wide_flat_tol
 
 
 @dataclass(frozen=True)
@@ -96,13 +103,14 @@ class ContactModel:
         mu = torch.where(contacts.frictionless.to(x.device), torch.zeros_like(mu), mu)
         e = params.e.to(xs)[contacts.slot]
         vC = (Jc @ vs.reshape(Bp, -1, 1))[..., 0]
-        f_c = solve(A_qp, vC, mu, None, contacts.active)
+        flat_tol = FLAT_TOL if x.dtype == WIDE and not constraints.count else None
+        f_c = solve(A_qp, vC, mu, None, contacts.active, flat_tol=flat_tol)
         v_target = self.target_velocity(constraints, xs, contacts, dt, A)
         vC_c = vC + (A @ f_c[..., None])[..., 0]
         lower = e * f_c[:, ::dc]
         # a separating contact's compression impulse is zero up to rounding (±1e-16): the bound must stay ≥ 0
         lower = lower.clamp_min(0.0)
-        f_r = solve(A_qp, vC_c - v_target, mu, lower, contacts.active)
+        f_r = solve(A_qp, vC_c - v_target, mu, lower, contacts.active, flat_tol=flat_tol)
         return Phases(A=A, v_before=vC, f_c=f_c, f_r=f_r, mu=mu, lower=lower, MhJt=MhJt)
 
     @torch.no_grad()

@@ -19,7 +19,6 @@ Structure stays known (bodies, constraints, contact geometry); the values are le
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import TYPE_CHECKING, cast
 
 import torch
@@ -73,8 +72,9 @@ class MLPPotential(nn.Module, ForcePotential):
 
         Equal to autograd's gradient up to rounding (Softplus' slope above its threshold, 20, is 1 there and the
         sigmoid here, within 2e-9); the output bias and the last activation are not needed."""
-        # (Linear, Softplus, ..., Linear): a Sequential of the Linear layers, which torch types as any Module
-        linears = cast("Sequence[nn.Linear]", self.net[::2])
+        # (Linear, Softplus, ..., Linear), listed: slicing the Sequential would build a new module at every call
+        layers = list(self.net)
+        linears = cast("list[nn.Linear]", layers[::2])
         if len(linears) == 1:  # (no hidden layer: V is linear)
             return -linears[0].weight.expand(x.shape[0], -1).reshape(x.shape)
         h, slopes = x.flatten(1), []
@@ -82,7 +82,7 @@ class MLPPotential(nn.Module, ForcePotential):
             z = lin(h)
             slopes.append(torch.sigmoid(z))
             if i < len(linears) - 2:
-                h = self.net[2 * i + 1](z)
+                h = layers[2 * i + 1](z)
         g = slopes[-1] * linears[-1].weight  # (B, H)
         for lin, slope in zip(reversed(linears[1:-1]), reversed(slopes[:-1])):
             g = (g @ lin.weight) * slope

@@ -62,8 +62,11 @@ class ContactSolver:
         mu: torch.Tensor,
         lower: torch.Tensor | None = None,
         active: torch.Tensor | None = None,
+        flat_tol: float | None = None,
     ) -> torch.Tensor:
-        """f (B, K·d) for a batch (A: (B, K·d, K·d), q: (B, K·d), mu, lower, active: (B, K)); see ``backend``."""
+        """f (B, K·d) for a batch (A: (B, K·d, K·d), q: (B, K·d), mu, lower, active: (B, K)); see ``backend``
+        (``flat_tol``, where given, is passed on to it)."""
+        extra = {} if flat_tol is None else {"flat_tol": flat_tol}
         f, info = self.backend(
             A,
             q,
@@ -75,6 +78,7 @@ class ContactSolver:
             max_iter=self.max_iter,
             on_failure=self.on_failure,
             return_info=True,
+            **extra,
         )
         self.calls += 1
         counts = np.bincount(info.status.numpy(), minlength=_N_STATUS)

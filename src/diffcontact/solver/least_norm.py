@@ -9,13 +9,13 @@ A f), or, with the rounding, no bounded one at all.  This module states what the
 Definitions (per batch element, on the rows in use: active contacts, without the tangential rows of μ = 0):
 
 - ``ref`` = the largest diagonal entry of A on those rows (λ_max(A) ≤ n·ref).
-- A direction is *flat* if it is an eigenvector v of A with eigenvalue |λ| ≤ τ·s_v, τ = ``psd_tol(dtype)`` =
-  max(1e-6, 100·eps(dtype)) for the input dtype, s_v = (Σ_i |v_i| √A_ii)² clipped to [``ROW_FLOOR``·ref, ref]: the
-  scale of the rows v lives on, since a product Z Zᵀ rounds its entries relative to their rows (on an A whose rows
-  are of one scale, s_v ≈ ref; on a badly row-scaled one, such as the limits of a long rope with rows 1e5 times
-  apart, a real eigenvalue far below τ·ref is not taken for rounding).  A is *PSD up to rounding* if every
-  eigenvalue is ≥ −τ·ref; an eigenvalue below that makes A genuinely indefinite, an input error
-  (``IndefiniteMatrixError``).
+- A direction is *flat* if it is an eigenvector v of A with eigenvalue |λ| ≤ τ·s_v, τ = ``psd_tol(dtype)`` = max(1e-6,
+  100·eps(dtype)) for the input dtype (or the caller's ``flat_tol``: ``solve_cone_qp``), s_v = (Σ_i |v_i| √A_ii)²
+  clipped to [``ROW_FLOOR``·ref, ref]: the scale of the rows v lives on, since a product Z Zᵀ rounds its entries
+  relative to their rows (on an A whose rows are of one scale, s_v ≈ ref; on a badly row-scaled one, such as the
+  limits of a long rope with rows 1e5 times apart, a real eigenvalue far below τ·ref is not taken for rounding).  A is
+  *PSD up to rounding* if every eigenvalue is ≥ −τ·ref; an eigenvalue below that makes A genuinely indefinite, an
+  input error (``IndefiniteMatrixError``).
 - q's component along the flat directions, Π_N q, is a velocity that no contact impulse can change (the joints
   fix it): for physical data q = J v, and Π_N q = 0 when v obeys the joints (J_E v = 0).  The integrator leaves a
   drift (measured in the ground-truth simulation of the gyroscope with μ = 1.2: ‖Π_N q‖/‖q‖ median 1e-4, at most

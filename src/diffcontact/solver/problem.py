@@ -236,6 +236,7 @@ def solve_cone_qp(
     acceptable_tol: float = ...,
     max_iter: int = ...,
     on_failure: Literal["raise", "count"] = ...,
+    flat_tol: float | None = ...,
     return_info: Literal[False] = ...,
 ) -> torch.Tensor: ...
 @overload
@@ -250,6 +251,7 @@ def solve_cone_qp(
     acceptable_tol: float = ...,
     max_iter: int = ...,
     on_failure: Literal["raise", "count"] = ...,
+    flat_tol: float | None = ...,
     return_info: Literal[True],
 ) -> tuple[torch.Tensor, SolverInfo]: ...
 def solve_cone_qp(
@@ -263,6 +265,7 @@ def solve_cone_qp(
     acceptable_tol: float = POLICY.acceptable_tol,
     max_iter: int = POLICY.max_iter,
     on_failure: Literal["raise", "count"] = "raise",
+    flat_tol: float | None = None,
     return_info: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, SolverInfo]:
     """Solve a batch of contact cone QPs; differentiable by implicit differentiation.
@@ -285,6 +288,10 @@ def solve_cone_qp(
         tol: target of the scaled KKT residual; acceptable_tol: residual still usable at the iteration limit.
         on_failure: "raise" raises :class:`ContactSolverError` naming the failing elements; "count" returns
             zeros for them and reports them in the info.
+        flat_tol: τ of ``solver/least_norm.py``: an eigenvalue of A within τ (relative) of zero is rounding, a flat
+            direction; default ``least_norm.psd_tol`` of A's dtype, max(1e-6, 100·eps), which allows for an A of float32
+            accuracy.  An A known to be accurate to float64 can pass less (the contact model does for a float64 state
+            without joints: ``POLICY.wide_flat_tol``).
         return_info: also return a :class:`SolverInfo`.
 
     Returns:
@@ -297,6 +304,8 @@ def solve_cone_qp(
         raise ValueError(f"tol = {tol!r}, acceptable_tol = {acceptable_tol!r}: need 0 < tol <= acceptable_tol < 1")
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
         raise ValueError(f"max_iter = {max_iter!r} is not an integer >= 1")
+    if flat_tol is not None and not (0 < flat_tol < 1):  # (False for NaN)
+        raise ValueError(f"flat_tol = {flat_tol!r}: need 0 < flat_tol < 1")
     device = A.device if isinstance(A, torch.Tensor) else torch.device("cpu")
     if device.type != "cpu":
         A, q, mu = (t.cpu() if isinstance(t, torch.Tensor) else t for t in (A, q, mu))
@@ -305,14 +314,13 @@ def solve_cone_qp(
     arrays = _as_arrays(A, q, mu, lower, active)
     out_dtype = A.dtype if A.dtype.is_floating_point else torch.float64
     opts = SolveOptions(tol, acceptable_tol, max_iter, on_failure)
-    found, a_finite, symmetric = least_norm.flat_elements(
-        arrays[0], arrays[2], arrays[4], d, least_norm.psd_tol(out_dtype)
-    )
+    tau = least_norm.psd_tol(out_dtype) if flat_tol is None else flat_tol
+    found, a_finite, symmetric = least_norm.flat_elements(arrays[0], arrays[2], arrays[4], d, tau)
     mu_max = _check_values(*arrays, a_finite)
     if np.count_nonzero(found):  # (rare: the elements with flat directions, in torch)
         lower = torch.from_numpy(arrays[3]) if lower is None else lower
         active = torch.from_numpy(arrays[4])
-        A, q, flats = least_norm.project_flat(A, q, mu, active, d, least_norm.psd_tol(out_dtype), found)
+        A, q, flats = least_norm.project_flat(A, q, mu, active, d, tau, found)
         qp = ConeQP(A, q, mu, lower, active, d)
         if flats.consistent.any():
             # (the policy applied once at the end: a failed first solve may still be rescued, _near_least_norm)
