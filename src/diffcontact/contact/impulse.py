@@ -34,11 +34,12 @@ COMPENSATION = 0.125
 #: small eigenvalues where its rows differ in scale (a noisy rope's links compressed to almost nothing: diagonal up to
 #: 7e7, least eigenvalue 0.13), and the impulses and their gradients then follow the rounding, not the model.
 WIDE = torch.float64
-#: Where an eigenvalue of that A is rounding (a flat direction), relative to its diagonal, for a float64 state of a
-#: system without joints: its flat directions are exact (more contacts than degrees of freedom), so A is flat only to
-#: float64's rounding, far below the solver's default for a float64 input (1e-6).  The others keep the default: a
-#: float32 state's geometry is itself rounded, and the joints of a float64 one hold only to the integrator's drift (a
-#: gyroscope's rim contact then misses the line to its pivot), so that their flat directions come out at that level.
+#: Where an eigenvalue of that A is rounding (a flat direction), relative to its diagonal, for a system without joints:
+#: its flat directions are exact (more contacts than degrees of freedom, whatever the positions), so A, assembled in
+#: float64, is flat only to float64's rounding, far below the solver's default for a float64 input (1e-6), and an
+#: eigenvalue between the two is real (a rope's nearly coincident nodes).  Systems with joints keep the default: their
+#: joints hold only to the state's rounding and the integrator's drift (a gyroscope's rim contact then misses the
+#: line to its pivot), so that their flat directions come out at that level.
 FLAT_TOL = POLICY.wide_flat_tol
 
 
@@ -103,7 +104,7 @@ class ContactModel:
         mu = torch.where(contacts.frictionless.to(x.device), torch.zeros_like(mu), mu)
         e = params.e.to(xs)[contacts.slot]
         vC = (Jc @ vs.reshape(Bp, -1, 1))[..., 0]
-        flat_tol = FLAT_TOL if x.dtype == WIDE and not constraints.count else None
+        flat_tol = None if constraints.count else FLAT_TOL
         f_c = solve(A_qp, vC, mu, None, contacts.active, flat_tol=flat_tol)
         v_target = self.target_velocity(constraints, xs, contacts, dt, A)
         vC_c = vC + (A @ f_c[..., None])[..., 0]

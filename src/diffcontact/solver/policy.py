@@ -51,7 +51,7 @@ class SolverPolicy:
     alm_accept: float = 1e-9  # ... below which an iterate counts as a minimiser
     alm_floor: float = 1e-7  # a stalled iterate steps on until its miss is below this (the inner solves' accuracy)
     alm_far: float = 1e4  # ... when it stalls this many times farther from its start than its miss (not at a point)
-    wide_flat_tol: float = 1e-10  # the contact model's A of a float64 state without joints is flat below this: its
+    wide_flat_tol: float = 1e-10  # the contact model's A of a system without joints is flat below this: its
     # rounding is ≲ n·eps·max(diag A) (2e-13 at Rope200's 399 rows), and a rope compressed past every limit has a
     # real eigenvalue 1.3e-8 × max(diag A), which 1e-6 took for rounding (impulses 82 off, reported converged)
     v_rounding: float = 1e-9  # parts of a unit flat direction up to this are the eigensolver's rounding

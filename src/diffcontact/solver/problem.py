@@ -290,7 +290,7 @@ def solve_cone_qp(
             zeros for them and reports them in the info.
         flat_tol: τ of ``solver/least_norm.py``: an eigenvalue of A within τ (relative) of zero is rounding, a flat
             direction; default ``least_norm.psd_tol`` of A's dtype, max(1e-6, 100·eps), which allows for an A of float32
-            accuracy.  An A known to be accurate to float64 can pass less (the contact model does for a float64 state
+            accuracy.  An A known to be accurate to float64 can pass less (the contact model does for a system
             without joints: ``POLICY.wide_flat_tol``).
         return_info: also return a :class:`SolverInfo`.
 
