@@ -68,18 +68,21 @@ def _phases(task, params, x, v):
     return sim.contact_model.phases(task.system.constraints, params, x, v, contacts, task.dt), contacts
 
 
-@pytest.mark.parametrize("state", ["every limit crossed", "simulated"])
+@pytest.mark.parametrize("state", ["every limit crossed", "every limit crossed, float32 state", "simulated"])
 def test_rope200_contact_problems_match_clarabel_and_central_differences(state):
     """A 200-node rope's limit problems: the compressed zigzag crosses all 399 limits (A 399 × 399, eigenvalues 6e-4
-    … 1.3e5: the least is real, not rounding), and a simulated frame has the limits that 60 frames of motion bring
-    (with random velocities).
-    Both phases agree with Clarabel, and the velocity jump's derivatives with respect to the velocities and the
-    masses agree with central differences."""
+    … 1.3e5: the least is real, not rounding), also as a float32 state (a float32 model's: its problem is assembled
+    and solved in float64, and its least eigenvalue is as real), and a simulated frame has the limits that 60 frames
+    of motion bring (with random velocities).
+    Both phases agree with Clarabel, and (float64) the velocity jump's derivatives with respect to the velocities and
+    the masses agree with central differences."""
     task = build_task("Rope200")
     gen = torch.Generator().manual_seed(3)
-    if state == "every limit crossed":
+    if state.startswith("every limit crossed"):
         x = _compressed_zigzag(200)
         v = 0.3 * torch.randn(1, 200, 2, generator=gen, dtype=torch.float64)
+        if state.endswith("float32 state"):
+            x, v = x.float(), v.float()
     else:
         s = task.sample(2, seed=3)
         sim, x, v = simulator_for(task), s.x, s.v
@@ -92,9 +95,9 @@ def test_rope200_contact_problems_match_clarabel_and_central_differences(state):
         v = v + 0.3 * torch.randn(v.shape, generator=gen, dtype=torch.float64)
     phases, contacts = _phases(task, task.params, x, v)
     K = int(contacts.active.sum(-1).max())
-    assert K == 399 if state == "every limit crossed" else K >= 50
+    assert K == 399 if state.startswith("every limit crossed") else K >= 50
     model = simulator_for(task).contact_model
-    target = model.target_velocity(task.system.constraints, x[contacts.index], contacts, task.dt, phases.A)
+    target = model.target_velocity(task.system.constraints, x[contacts.index].double(), contacts, task.dt, phases.A)
     after = phases.v_before + (phases.A @ phases.f_c[..., None])[..., 0]  # (the compression's end)
     for b in range(len(contacts.index)):
         on = contacts.active[b].numpy()
@@ -113,6 +116,8 @@ def test_rope200_contact_problems_match_clarabel_and_central_differences(state):
             obj, obj_ref = 0.5 * f @ A @ f + q @ f, 0.5 * ref @ A @ ref + q @ ref
             assert obj <= obj_ref + TOL_OBJ * max(1.0, abs(obj_ref), np.abs(q).max() * scale)
 
+    if x.dtype != torch.float64:
+        return
     # the velocity jump's derivatives: along a random velocity and a random change of the 200 masses
     w = torch.randn(x.shape[0], 400, generator=gen, dtype=torch.float64)
     dv = torch.randn(v.shape, generator=gen, dtype=torch.float64)
