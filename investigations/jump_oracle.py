@@ -19,7 +19,9 @@ Each is scored as ``benchmarks/baselines_best.py`` scores a baseline: Fig. 3's 5
 trajectories and the one-step relative error on its pairs whose second frame holds a collision, beside a
 constant-velocity predictor.  A part of the jump that does not beat constant velocity, given exactly, cannot make
 a baseline that learns only that part beat it either.  Also printed: how the true jump's norm splits between the
-receivers and the other points.  float64, no training, seconds per task.
+receivers and the other points, and the jump's size on the pairs (from the split's 5-frame chunks, which a
+window rule keeps off collision frames: on a rope, its first frames) against its size on the collisions of every
+frame of the same trajectories.  float64, no training, seconds per task.
 
 With ``--fit`` it also fits MLP-CD-CLNN's jump network alone (the published 2PD → 3 × 256 ReLU → PD, seeded as the
 model seeds it) to the true jump, input [x, v] after the true flow, on the collision frames of the training
@@ -90,7 +92,8 @@ def measure(task_name: str, data: str, split: str) -> dict:
     sim, params, system = simulator_for(task), task.params, task.system
     folder = dataset_folder(data, task_name)
     x, v, _, dt = ground_truth(folder, split, 5, task.config)
-    pairs = PairDataset(load_split(folder, split, task.config))
+    split_data = load_split(folder, split, task.config)
+    pairs = PairDataset(split_data)
     hit = pairs.collision
     px0, pv0, px1, pv1 = (t[hit].double() for t in (pairs.x0, pairs.v0, pairs.x1, pairs.v1))
     mask = receivers(system).to(torch.float64)[None, :, None]
@@ -116,6 +119,10 @@ def measure(task_name: str, data: str, split: str) -> dict:
         dv = pv1 - v1  # the true jump on the collision pairs (B, P, d)
         on = float((dv * mask).square().sum())
         share = on / float(dv.square().sum())
+        size = dv.flatten(1).norm(dim=1)  # |Δv| over all points, per collision pair
+        every = split_data.contact[:, 1:]  # the collisions of every frame of the split's trajectories
+        fx1, fv1 = sim.flow(params, split_data.x[:, :-1][every].double(), split_data.v[:, :-1][every].double(), dt)
+        size_every = (split_data.v[:, 1:][every].double() - fv1).flatten(1).norm(dim=1)
     return {
         "task": task_name,
         "split": split,
@@ -123,6 +130,11 @@ def measure(task_name: str, data: str, split: str) -> dict:
         "receivers": int(mask.sum()),
         "points": system.n_points,
         "jump_share_on_receivers": share,
+        "chunk_start_max": int(torch.as_tensor(split_data.chunk_start).max()),
+        "jump_median_pairs": float(size.median()),
+        "jump_zero_share_pairs": float((size <= 1e-9).double().mean()),
+        "jump_median_every_frame": float(size_every.median()),
+        "collisions_every_frame": int(every.sum()),
         "predictors": rows,
     }
 
@@ -206,6 +218,13 @@ def main() -> None:
             f"\n{r['task']} ({r['split']}): {r['collision_pairs']} collision pairs; contact relations reach "
             f"{r['receivers']} of {r['points']} points, which carry {100 * r['jump_share_on_receivers']:.1f} % of "
             "the true jump's squared norm on those pairs"
+        )
+        print(
+            f"the true jump |Δv| (over all points) on those pairs, from chunks starting at frames 0–"
+            f"{r['chunk_start_max']}: median {r['jump_median_pairs']:.3g} m/s, "
+            f"{100 * r['jump_zero_share_pairs']:.0f} % exactly 0; on the {r['collisions_every_frame']} collisions of "
+            "every frame: median "
+            f"{r['jump_median_every_frame']:.3g} m/s"
         )
         print("| predictor | 5-step error | collision pairs |\n|---|---|---|")
         for name, p in r["predictors"].items():
