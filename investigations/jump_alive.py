@@ -6,7 +6,8 @@
 For each run (its best checkpoint) of MLP-CD-CLNN (the jump: its MLP) or IN-CP-CLNN (the jump: the interaction
 network's output, added to the learned flow's velocity), over the steps from the first four frames of ``--n`` test
 trajectories: the share of each hidden layer's ReLU units alive on at least one state, the jump's spread over the
-states (0: the network outputs its last bias, the same Δv everywhere) and its mean size, and the 5-step error of
+states (0: the network outputs its last bias, the same Δv everywhere), its mean size and its mean on the first
+point (a constant jump's value), and the 5-step error of
 Fig. 3 on those trajectories with the jump as learned and with it set to zero (the last layer's weights and bias).
 """
 
@@ -67,7 +68,8 @@ def main() -> None:
         zeroed = float(trajectory_error(relative_error(xz, vz, x, v), 5).mean())
         print(
             f"{path}: alive units per hidden layer {[round(float(a.double().mean()), 3) for a in alive]}; jump "
-            f"spread over states {float(dv.std(0).mean()):.3g} m/s, mean |Δv| {float(dv.abs().mean()):.6g} m/s; "
+            f"spread over states {float(dv.std(0).mean()):.3g} m/s, mean |Δv| {float(dv.abs().mean()):.6g} m/s, "
+            f"mean Δv of the first point {[float(f'{c:.3g}') for c in dv.mean(0)[: x.shape[-1]]]} m/s; "
             f"5-step error {learned:.5g} as learned, {zeroed:.5g} with the jump zeroed ({len(x)} test trajectories)"
         )
 
