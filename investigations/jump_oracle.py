@@ -87,6 +87,15 @@ def rollout(step, x0, v0, frames: int):
     return torch.stack(xs, 1), torch.stack(vs, 1)
 
 
+def collision_frames(sim, params, s, dt: float):
+    """Every frame of a split's trajectories whose next frame holds a collision: the true flow's state after one
+    step from it (x1, v1) and the recorded next state (xt, vt), each (M, P, d)."""
+    hit = s.contact[:, 1:]
+    x0, v0, xt, vt = s.x[:, :-1][hit], s.v[:, :-1][hit], s.x[:, 1:][hit], s.v[:, 1:][hit]
+    x1, v1 = sim.flow(params, x0, v0, dt)
+    return x1, v1, xt, vt
+
+
 def measure(task_name: str, data: str, split: str) -> dict:
     task = build_task(task_name)
     sim, params, system = simulator_for(task), task.params, task.system
@@ -120,9 +129,8 @@ def measure(task_name: str, data: str, split: str) -> dict:
         on = float((dv * mask).square().sum())
         share = on / float(dv.square().sum())
         size = dv.flatten(1).norm(dim=1)  # |Δv| over all points, per collision pair
-        every = split_data.contact[:, 1:]  # the collisions of every frame of the split's trajectories
-        _, fv1 = sim.flow(params, split_data.x[:, :-1][every].double(), split_data.v[:, :-1][every].double(), dt)
-        size_every = (split_data.v[:, 1:][every].double() - fv1).flatten(1).norm(dim=1)
+        _, fv1, _, fvt = collision_frames(sim, params, split_data, dt)
+        size_every = (fvt - fv1).flatten(1).norm(dim=1)
     return {
         "task": task_name,
         "split": split,
@@ -134,7 +142,7 @@ def measure(task_name: str, data: str, split: str) -> dict:
         "jump_median_pairs": float(size.median()),
         "jump_zero_share_pairs": float((size <= 1e-9).double().mean()),
         "jump_median_every_frame": float(size_every.median()),
-        "collisions_every_frame": int(every.sum()),
+        "collisions_every_frame": int(fv1.shape[0]),
         "predictors": rows,
     }
 
@@ -147,16 +155,10 @@ def fit_curve(task_name: str, data: str, split: str, sizes: list[int], steps: in
     train, held = load_split(folder, "train", task.config), load_split(folder, split, task.config)
     dt = float(train.t[1] - train.t[0])
 
-    def frames(s):
-        hit = s.contact[:, 1:]
-        x0, v0, xt, vt = s.x[:, :-1][hit], s.v[:, :-1][hit], s.x[:, 1:][hit], s.v[:, 1:][hit]
-        x1, v1 = sim.flow(params, x0, v0, dt)
-        return x1, v1, xt, vt
-
     chunk_pairs = PairDataset(train)
     with torch.no_grad():
-        tx, tv, txt, tvt = frames(train)
-        hx, hv, hxt, hvt = frames(held)
+        tx, tv, txt, tvt = collision_frames(sim, params, train, dt)
+        hx, hv, hxt, hvt = collision_frames(sim, params, held, dt)
         cx0, cv0 = chunk_pairs.x0[chunk_pairs.collision], chunk_pairs.v0[chunk_pairs.collision]
         cx1, cv1 = sim.flow(params, cx0, cv0, dt)
         cvt = chunk_pairs.v1[chunk_pairs.collision]
