@@ -10,7 +10,7 @@ import pytest
 
 from diffcontact.errors import ConfigError
 from diffcontact.eval import published
-from diffcontact.eval.efficiency import collect, efficiency_figure, efficiency_markdown, run_efficiency
+from diffcontact.eval.efficiency import cell_epochs, collect, efficiency_figure, efficiency_markdown, run_efficiency
 from diffcontact.eval.reproduce import reproduce
 from diffcontact.files import write_json
 from diffcontact.run_dir import RunDir
@@ -50,6 +50,27 @@ def test_bad_sizes_and_a_folder_of_another_training_size_are_refused(tmp_path):
         reproduce(["BP5-e"], ["CM-CD-CLNN"], [0], tmp_path, quick=True, n_train=12)
     with pytest.raises(ConfigError, match="n_train"):
         reproduce(["BP5-e"], ["CM-CD-CLNN"], [0], tmp_path / "other", quick=True, n_train=0)
+
+
+def test_beyond_the_default_data_a_cell_trains_the_default_runs_optimiser_steps(tmp_path, monkeypatch):
+    # the Rope200's default run: 600 epochs of 800 trajectories; N = 12,800 at 600 epochs would take 16 times its steps
+    assert [cell_epochs("Rope200", "CM-CD-CLNN", n) for n in (25, 800, 1600, 3200, 12800)] == [None, None, 300, 150, 38]
+    assert cell_epochs("Rope200", "IN-CP-SP", 6400) == 75 and cell_epochs("BP5-e", "MLP-CD-CLNN", 1000) == 160
+    calls = []
+    monkeypatch.setattr(
+        "diffcontact.eval.reproduce.reproduce", lambda *a, **k: calls.append((k["n_train"], k["epochs"]))
+    )
+    run_efficiency("Rope200", ["CM-CD-CLNN", "IN-CP-SP"], [800, 3200], tmp_path, echo=lambda _: None)
+    assert calls == [(800, {"CM-CD-CLNN": None, "IN-CP-SP": None}), (3200, {"CM-CD-CLNN": 150, "IN-CP-SP": 150})]
+    record = json.loads((tmp_path / "efficiency.json").read_text())
+    assert record["epochs_by_size"]["3200"] == {"CM-CD-CLNN": 150, "IN-CP-SP": 150}
+    assert "- N = 3200: CM-CD-CLNN 150, IN-CP-SP 150" in (tmp_path / "efficiency.md").read_text()
+    assert "N = 800:" not in (tmp_path / "efficiency.md").read_text()
+    calls.clear()
+    run_efficiency("Rope200", ["CM-CD-CLNN"], [3200], tmp_path, epochs=7, echo=lambda _: None)  # (given: every N)
+    assert calls == [(3200, {"CM-CD-CLNN": 7})]
+    with pytest.raises(ConfigError, match="epochs = 0 is not a whole number"):
+        reproduce(["BP5-e"], ["CM-CD-CLNN"], [0], tmp_path / "bad", quick=True, epochs={"CM-CD-CLNN": 0})
 
 
 @pytest.mark.slow  # (two quick cells: about 30 s)

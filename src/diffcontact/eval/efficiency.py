@@ -5,6 +5,10 @@ One reproduction per N (``OUT/N<N>``: its datasets with N training trajectories,
 trajectories for every N, its runs and report), then ``OUT/efficiency.json``, ``efficiency.md`` (the table) and
 ``efficiency.png`` (log-log, the published curves dashed).  A cell already done is not run again, so the command
 resumes where it stopped, and the cells go to the backend of ``reproduce`` (this machine, Ray or Slurm).
+
+Every cell trains with its model's defaults, except that beyond the task's default number of training trajectories
+(800) its epochs shrink in proportion (:func:`cell_epochs`): a cell takes at most the optimiser steps of the model's
+default run, so that N = 12,800 costs what N = 800 does, not 16 times as much (docs/results.md, "Sample efficiency").
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diffcontact.data.generate import DEFAULT_SIZES
 from diffcontact.errors import ConfigError
 from diffcontact.eval import published
 from diffcontact.eval.backends import Backend
@@ -44,18 +49,36 @@ def run_efficiency(
 
     sizes = _check_sizes(sizes)
     out = Path(out)
+    planned: dict[int, dict[str, int | None]] = {}
     for n in sizes:
-        echo(f"N = {n}: {task}, {', '.join(models)}")
+        planned[n] = {m: epochs or (None if quick else cell_epochs(task, m, n)) for m in models}
+        shrunk = "" if epochs else ", ".join(f"{m} {e}" for m, e in planned[n].items() if e is not None)
+        note = f" (epochs: {shrunk}, the default run's steps)" if shrunk else ""
+        echo(f"N = {n}: {task}, {', '.join(models)}{note}")
         reproduce(
             [task], list(models), list(seeds), out / f"N{n}", jobs=jobs, threads=threads, n_train=n,
-            backend=backend, epochs=epochs, quick=quick, echo=echo, command=command,
+            backend=backend, epochs=planned[n], quick=quick, echo=echo, command=command,
         )  # fmt: skip
     table = collect(out, task, models, sizes, seeds)
-    record = {"task": task, "models": list(models), "sizes": sizes, "seeds": list(seeds), "epochs": epochs}
+    record = {
+        "task": task, "models": list(models), "sizes": sizes, "seeds": list(seeds), "epochs": epochs,
+        "epochs_by_size": {str(n): by_model for n, by_model in planned.items()},  # (None: the model's default)
+    }  # fmt: skip
     write_json(out / "efficiency.json", {"table": _json_table(table), **record, "versions": versions()})
-    write_text(out / "efficiency.md", efficiency_markdown(task, table))
+    write_text(out / "efficiency.md", efficiency_markdown(task, table, planned))
     efficiency_figure(task, table, out / "efficiency.png")
     return table
+
+
+def cell_epochs(task: str, model: str, n: int, n_default: int = DEFAULT_SIZES["train"]) -> int | None:
+    """The epochs of ``model``'s cell with ``n`` training trajectories: None (its default for ``task``) up to
+    ``n_default`` trajectories, beyond them ⌈epochs × n_default / n⌉, the optimiser steps of the default run (the
+    steps of an epoch grow with n)."""
+    from diffcontact.train.config import TrainConfig
+
+    if n <= n_default:
+        return None
+    return -(-TrainConfig.resolve(task, model).epochs * n_default // n)
 
 
 def _check_sizes(sizes: Sequence[int]) -> list[int]:
@@ -96,9 +119,12 @@ def _json_table(table: dict[str, dict[int, dict | None]]) -> dict:
     return {model: {str(n): cell for n, cell in row.items()} for model, row in table.items()}
 
 
-def efficiency_markdown(task: str, table: dict[str, dict[int, dict | None]]) -> str:
+def efficiency_markdown(
+    task: str, table: dict[str, dict[int, dict | None]], epochs: dict[int, dict[str, int | None]] | None = None
+) -> str:
     """The table: one row per model, one column per N; each cell ours ± its 95 % half width, the published value
-    below it where there is one, "not measured" where the run is missing."""
+    below it where there is one, "not measured" where the run is missing; then the epochs of the cells that did not
+    train their model's default ones (``epochs``: {N: {model: epochs or None}})."""
     sizes = sorted({n for row in table.values() for n in row})
     pub = published.SAMPLE_EFFICIENCY.get(task, {})
     lines = [
@@ -119,6 +145,13 @@ def efficiency_markdown(task: str, table: dict[str, dict[int, dict | None]]) -> 
                 text += f" ({pub[model][n]:.3g})"
             cells.append(text)
         lines.append(f"| {model} | " + " | ".join(cells) + " |")
+    shrunk = {n: {m: e for m, e in row.items() if e is not None} for n, row in (epochs or {}).items()}
+    if any(shrunk.values()):
+        lines += [
+            "",
+            "Epochs other than each model's default (beyond the task's default data: the default run's steps):",
+        ]
+        lines += [f"- N = {n}: " + ", ".join(f"{m} {e}" for m, e in row.items()) for n, row in shrunk.items() if row]
     return "\n".join(lines) + "\n"
 
 

@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -259,7 +259,7 @@ def reproduce(
     noise: float = 0.0,
     n_train: int | None = None,
     backend: Backend | None = None,
-    epochs: int | None = None,
+    epochs: int | Mapping[str, int | None] | None = None,
     progress_every: float = 60.0,
     echo: Callable[[str], None] = print,
     command: str = "",
@@ -272,7 +272,8 @@ def reproduce(
     and validation chunks (:mod:`diffcontact.data.noise`; the test trajectories stay clean).  ``n_train``: training
     trajectories of every dataset (default: the generator's, or the quick mode's).  ``backend``: where the
     cells run (:mod:`diffcontact.eval.backends`; default this machine), ``jobs`` of them at a time.  ``epochs``: of
-    every run trained (default: each task's preset, or one with ``quick``).  ``progress_every``:
+    every run trained, or of each model's runs ({model: epochs}; a model not in it takes its default) (default: each
+    task's preset, or one with ``quick``).  ``progress_every``:
     seconds between progress lines while runs are going (one is also printed whenever a run starts or ends).
     """
     from diffcontact.data.generate import generate_dataset
@@ -288,8 +289,10 @@ def reproduce(
         raise ConfigError(f"jobs = {jobs} is not >= 1")
     if threads < 1:
         raise ConfigError(f"threads = {threads} is not >= 1")
-    if epochs is not None and (isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 1):
-        raise ConfigError(f"epochs = {epochs!r} is not a whole number >= 1")
+    by_model = dict(epochs) if isinstance(epochs, Mapping) else {model: epochs for model in models}
+    for value in by_model.values():
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ConfigError(f"epochs = {value!r} is not a whole number >= 1")
     noise = check_noise(noise)
     if n_train is not None and (isinstance(n_train, bool) or not isinstance(n_train, int) or n_train < 1):
         raise ConfigError(f"n_train = {n_train!r} is not a whole number >= 1")
@@ -304,7 +307,7 @@ def reproduce(
         sizes["n_train"] = n_train
     for task in tasks:
         generate_dataset(task, data, noise=noise, progress=False, echo=echo, **sizes)
-    cells = [replace(c, epochs=epochs) for c in plan(out, tasks, models, seeds)]
+    cells = [replace(c, epochs=by_model.get(c.model)) for c in plan(out, tasks, models, seeds)]
     todo = [c for c in cells if c.todo in ("train", "evaluate")]
     done = sum(c.todo == "done" for c in cells)
     jobs = min(jobs, max(len(todo), 1))  # (a cluster backend may have every cell in flight)
