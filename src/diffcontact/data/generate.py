@@ -68,28 +68,37 @@ def simulate_split(
     state = task.sample(n, seed)
     workers = _check_int("workers", workers, 1)
     bounds = blocks(n)
-    parts: list = []
+    out: list[torch.Tensor] = []  # (x, v, contact of all n, filled block by block: no second copy of the split)
+
+    def put(a: int, part) -> None:
+        if not out:
+            out.extend(torch.empty((n, *t.shape[1:]), dtype=t.dtype) for t in part)
+        for whole, t in zip(out, part):
+            whole[a : a + len(t)] = t
+
     fmt = "{desc}: {percentage:3.0f}%|{bar}| {n}/{total_fmt} trajectories [{elapsed}<{remaining}]"
     with tqdm(total=n, desc=label, bar_format=fmt, disable=not progress, leave=False) as bar:
         if workers == 1 or len(bounds) == 2:
             for a, b in zip(bounds[:-1], bounds[1:]):
-                parts.append(_simulate(task, State(state.x[a:b], state.v[a:b]), frames, bar))
+                put(a, _simulate(task, State(state.x[a:b], state.v[a:b]), frames, bar))
         elif pool is None:
             with worker_pool(workers) as own:
                 return simulate_split(task, n, seed, frames, progress, label, workers, own)
         else:
             threads = max(1, torch.get_num_threads() // workers)
-            futures = [
+            futures: list = [
                 pool.submit(_simulate_block, task.config, state.x[a:b].numpy(), state.v[a:b].numpy(), frames, threads)
                 for a, b in zip(bounds[:-1], bounds[1:])
             ]
             for future in futures:
                 future.add_done_callback(lambda f: bar.update(len(f.result()[0])) if not f.exception() else None)
             try:
-                parts = [tuple(torch.from_numpy(a) for a in future.result()) for future in futures]
+                for i, a in enumerate(bounds[:-1]):
+                    put(a, [torch.from_numpy(arr) for arr in futures[i].result()])
+                    futures[i] = None  # (its arrays, now copied, can go)
             except BrokenProcessPool as err:
                 raise DiffContactError(f"{label}: a worker process ended abruptly (killed? out of memory?)") from err
-    x, v, c = (torch.cat([p[k] for p in parts]) for k in range(3))
+    x, v, c = out
     return x, v, c
 
 
