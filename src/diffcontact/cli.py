@@ -751,7 +751,8 @@ def bench_efficiency(
     threads: int = RUN_THREADS,
 ) -> None:
     """Sample efficiency: the 5-step error of each model against the training trajectories N, one reproduction per
-    N, beside the published curves; writes efficiency.md, efficiency.json and efficiency.png (resumes)."""
+    N, beside the published curves; writes efficiency.md, efficiency.json and efficiency.png (resumes).  Beyond the
+    task's default 800 trajectories a cell trains its default run's optimiser steps (fewer epochs), unless --epochs."""
     import sys
 
     from diffcontact.eval.backends import Backend

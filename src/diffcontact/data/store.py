@@ -198,20 +198,19 @@ def load_split(
     check_config(meta, config, folder)
     path = verify_file(folder, split, meta)
     info = meta["splits"][split]
+    tensors = {}
     try:
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:  # (np.load leaks its own handle
-            arrays = {k: data[k] for k in ARRAYS}  # on a corrupt file)
+            for key in ARRAYS:  # on a corrupt file)
+                arr, want = data[key], info["arrays"][key]
+                if list(arr.shape) != want["shape"] or str(arr.dtype) != want["dtype"]:
+                    raise DatasetError(
+                        f"{path}: array {key} is {arr.dtype}{list(arr.shape)}, recorded {want['dtype']}{want['shape']}"
+                    )
+                t = torch.from_numpy(arr)  # (cast one array at a time: at most one stored copy beside the cast ones)
+                tensors[key] = t.to(dtype) if dtype is not None and t.is_floating_point() else t
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as err:
         raise DatasetError(f"{path} is corrupt or incomplete: {err}") from err
-    for key, arr in arrays.items():
-        want = info["arrays"][key]
-        if list(arr.shape) != want["shape"] or str(arr.dtype) != want["dtype"]:
-            raise DatasetError(
-                f"{path}: array {key} is {arr.dtype}{list(arr.shape)}, recorded {want['dtype']}{want['shape']}"
-            )
-    tensors = {k: torch.from_numpy(a) for k, a in arrays.items()}
-    if dtype is not None:
-        tensors = {k: t.to(dtype) if t.is_floating_point() else t for k, t in tensors.items()}
     return Split(name=split, task=meta["request"]["task"], dt=float(meta["request"]["dt"]), **tensors)
 
 
