@@ -66,6 +66,12 @@ def test_the_sweep_runs_its_cells_resumes_and_tabulates(tmp_path):
     np.savez(other, position=tosses.position, toss_id=tosses.toss_id[::-1])
     with pytest.raises(DatasetError, match="other.npz holds predictions of other tosses"):
         paired_position_errors(folder, exact / "predictions.npz", {"other": other})
+    # several references (a model's seeds): each toss's mean over them, here the exact tosses' 0 and the nominal's error
+    from diffcontact.eval.toss_sweep import _folders
+
+    nominal = _folders(out, "nominal", 4)[1] / "predictions.npz"
+    halves = paired_position_errors(folder, [exact / "predictions.npz", nominal], {"nominal": nominal})
+    assert halves["nominal"]["mean"] == pytest.approx(paired["nominal"]["mean"] / 2, rel=1e-12)
     text = sweep_markdown(record["table"], {"nominal": {"4": paired["nominal"]}})
     assert "CM-CD-CLNN minus each method" in text and f"| nominal | {paired['nominal']['mean']:+.2f} [" in text
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, cast
 
@@ -53,11 +53,15 @@ def recorded_tosses(folder: str | Path, split: str = "test") -> tuple[Tosses, di
 
 
 def paired_position_errors(
-    folder: str | Path, reference: str | Path, others: Mapping[str, str | Path], split: str = "test"
+    folder: str | Path,
+    reference: str | Path | Sequence[str | Path],
+    others: Mapping[str, str | Path],
+    split: str = "test",
 ) -> dict[str, dict[str, float]]:
     """The per-toss position error of the predictions in ``reference`` (a predictions.npz of ``diffcontact
-    evaluate`` or ``peers fit``) minus that of each of ``others`` on the same tosses of ``split``, as
-    ``pose_metrics.paired_difference`` (mean and 95 % bootstrap interval, % of the width) by name."""
+    evaluate`` or ``peers fit``; several: each toss's mean over them, such as a model's seeds) minus that of each of
+    ``others`` on the same tosses of ``split``, as ``pose_metrics.paired_difference`` (mean and 95 % bootstrap
+    interval, % of the width) by name."""
     tosses, request = recorded_tosses(folder, split)
 
     def errors(path: str | Path) -> np.ndarray:
@@ -67,7 +71,8 @@ def paired_position_errors(
             position = predicted["position"]
         return per_toss_position_error(position, tosses.position, tosses.offsets, request["half_extents_m"])
 
-    base = errors(reference)
+    refs = [reference] if isinstance(reference, (str, Path)) else list(reference)
+    base = np.mean([errors(path) for path in refs], axis=0)
     return {name: paired_difference(base, errors(path)) for name, path in others.items()}
 
 
