@@ -52,6 +52,13 @@ def test_datamodule_serves_float32_batches_deterministically(root):
     x0, v0, x1, v1, dt, hit = next(iter(pairs.train_dataloader()))
     assert x0.shape == (8, 5, 2) and dt.dtype == torch.float32
     assert dm.trajectories("test", frames=50)[0][0].shape == (50, 5, 2)
+    # training reads the chunks only: the splits it holds have no frames of x and v, the chunks as a full load's
+    full = load_split(root / TASK, "train", dtype=torch.float32)
+    held = dm.splits["train"]
+    assert held.x.shape == held.v.shape == (10, 0, 5, 2) and held.x.dtype == torch.float32 and held.n == 10
+    for key in ("chunk_x", "chunk_v", "chunk_start", "chunk_collision", "contact", "t"):
+        assert torch.equal(getattr(held, key), getattr(full, key)), key
+    assert torch.equal(pairs._dataset("train").x1, PairDataset(full).x1)
 
 
 def test_datamodule_errors(root, tmp_path):

@@ -188,10 +188,17 @@ def verify_dataset(folder: str | Path, config: TaskConfig | None = None) -> dict
 
 
 def load_split(
-    folder: str | Path, split: str, config: TaskConfig | None = None, dtype=None, task: str | None = None
+    folder: str | Path,
+    split: str,
+    config: TaskConfig | None = None,
+    dtype=None,
+    task: str | None = None,
+    trajectories: bool = True,
 ) -> Split:
     """Load a verified split (checksum, config, array names, shapes, dtypes) as tensors, cast to ``dtype``
-    (floating arrays only; default: as stored, float64); ``task``: the task it must be of (DatasetError if not)."""
+    (floating arrays only; default: as stored, float64); ``task``: the task it must be of (DatasetError if not).
+    ``trajectories=False``: the chunks only, x and v left unread (0 frames each: what training reads of a split,
+    a twentieth of a 100-frame split's memory)."""
     meta = load_meta(folder)
     if task is not None and meta["request"]["task"] != task:
         raise DatasetError(f"{folder} holds a dataset of task {meta['request']['task']!r}, not {task!r}")
@@ -202,7 +209,12 @@ def load_split(
     try:
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:  # (np.load leaks its own handle
             for key in ARRAYS:  # on a corrupt file)
-                arr, want = data[key], info["arrays"][key]
+                want = info["arrays"][key]
+                if not trajectories and key in ("x", "v"):
+                    shape = [want["shape"][0], 0, *want["shape"][2:]]
+                    tensors[key] = torch.empty(shape, dtype=dtype or getattr(torch, want["dtype"]))
+                    continue
+                arr = data[key]
                 if list(arr.shape) != want["shape"] or str(arr.dtype) != want["dtype"]:
                     raise DatasetError(
                         f"{path}: array {key} is {arr.dtype}{list(arr.shape)}, recorded {want['dtype']}{want['shape']}"

@@ -42,13 +42,16 @@ class ContactDataModule(pl.LightningDataModule):
         self.folder = dataset_folder(root, self.config.name)
         self.batch_size, self.mode, self.dtype = batch_size, mode, dtype
         self.seed, self.num_workers = seed, num_workers
-        self.splits: dict[str, Split] = {}
+        self.splits: dict[str, Split] = {}  # (their chunks; x and v of 0 frames: ``load_split(trajectories=False)``)
 
     def setup(self, stage: str | None = None) -> None:
-        """Load and verify (checksum, config) every split once."""
+        """Load and verify (checksum, config) every split's chunks once."""
         for name in SPLITS:
             if name not in self.splits:
-                self.splits[name] = load_split(self.folder, name, self.config, dtype=self.dtype, task=self.config.name)
+                self.splits[name] = self._load(name, trajectories=False)
+
+    def _load(self, name: str, trajectories: bool) -> Split:
+        return load_split(self.folder, name, self.config, self.dtype, self.config.name, trajectories=trajectories)
 
     def _dataset(self, name: str):
         self.setup()
@@ -71,8 +74,7 @@ class ContactDataModule(pl.LightningDataModule):
         return DataLoader(self._dataset("test"), self.batch_size, num_workers=self.num_workers)
 
     def trajectories(self, split: str = "test", frames: int | None = None) -> TrajectoryDataset:
-        """Full trajectories of a split (e.g. ``frames=50`` for the evaluation rollouts)."""
-        self.setup()
-        if split not in self.splits:
+        """Full trajectories of a split (e.g. ``frames=50`` for the evaluation rollouts), read from its file."""
+        if split not in SPLITS:
             raise ConfigError(f"split = {split!r} is not one of {list(SPLITS)}")
-        return TrajectoryDataset(self.splits[split], frames)
+        return TrajectoryDataset(self._load(split, trajectories=True), frames)
