@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from diffcontact.errors import ConfigError
+from diffcontact.errors import ConfigError, DiffContactError
 from diffcontact.eval import published
 from diffcontact.eval.efficiency import cell_epochs, collect, efficiency_figure, efficiency_markdown, run_efficiency
 from diffcontact.eval.reproduce import reproduce
@@ -107,3 +107,36 @@ def test_python_dash_m_knows_every_command_the_console_script_knows():
     )
     assert done.returncode == 0, done.stderr
     assert bench >= {"efficiency", "tosses", "train"} and all(name in done.stdout for name in bench)
+
+
+def test_sweeps_run_apart_merge_into_one_table_later_cells_replacing_earlier(tmp_path, monkeypatch):
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "efficiency_table", Path(__file__).parents[1] / "benchmarks" / "efficiency_table.py"
+    )
+    assert spec is not None and spec.loader is not None
+    merger = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(merger)
+    cell = {"mean": 1e-3, "ci95": 1e-4, "seeds": 1}
+    first = {"task": "Rope200", "table": {"CM-CD-CLNN": {"25": cell, "1600": None}}}
+    later = {
+        "task": "Rope200",
+        "table": {"CM-CD-CLNN": {"25": None, "1600": {**cell, "mean": 4e-4}}, "MLP-CD-CLNN": {"25": None}},
+        "epochs_by_size": {"1600": {"CM-CD-CLNN": 300}},
+    }
+    write_json(tmp_path / "a" / "efficiency.json", first)
+    write_json(tmp_path / "b.json", later)
+    monkeypatch.setattr(sys, "argv", ["x", str(tmp_path / "a"), str(tmp_path / "b.json"), "--out", str(tmp_path / "m")])
+    merger.main()
+    merged = json.loads((tmp_path / "m" / "efficiency.json").read_text())
+    assert merged["table"]["CM-CD-CLNN"] == {"25": cell, "1600": {**cell, "mean": 4e-4}}  # (None never replaces)
+    assert merged["table"]["MLP-CD-CLNN"] == {"25": None} and merged["epochs_by_size"]["1600"] == {"CM-CD-CLNN": 300}
+    text = (tmp_path / "m" / "efficiency.md").read_text()
+    assert "0.0004 ± 0.0001 (0.00227)" in text and "- N = 1600: CM-CD-CLNN 300" in text
+    assert (tmp_path / "m" / "efficiency.png").stat().st_size > 1000
+    write_json(tmp_path / "c.json", {**first, "task": "Rope50"})
+    with pytest.raises(DiffContactError, match="different tasks"):
+        merger.merge([first, json.loads((tmp_path / "c.json").read_text())])
