@@ -23,7 +23,7 @@ import json
 from pathlib import Path
 
 from diffcontact.errors import DiffContactError
-from diffcontact.eval.efficiency import efficiency_figure, efficiency_markdown
+from diffcontact.eval.efficiency import efficiency_figure, efficiency_markdown, json_table
 from diffcontact.files import versions, write_json, write_text
 
 
@@ -32,8 +32,11 @@ def read(source: Path) -> dict:
     path = source / "efficiency.json" if source.is_dir() else source
     if not path.is_file():
         raise DiffContactError(f"{path}: no efficiency.json (run `diffcontact bench efficiency --out {source}`)")
-    record = json.loads(path.read_text())
-    if "table" not in record or "task" not in record:
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise DiffContactError(f"{path} cannot be read as JSON: {err}") from err
+    if not isinstance(record, dict) or "table" not in record or "task" not in record:
         raise DiffContactError(f"{path} is not a record of `diffcontact bench efficiency` (no task or table)")
     return record
 
@@ -61,16 +64,17 @@ def main() -> None:
     parser.add_argument("sources", nargs="+", type=Path, help="bench efficiency folders or efficiency.json files")
     parser.add_argument("--out", type=Path, required=True, help="folder of the merged efficiency.{json,md,png}")
     args = parser.parse_args()
-    records = [read(s) for s in args.sources]
-    task, table, epochs = merge(records)
+    try:
+        task, table, epochs = merge([read(s) for s in args.sources])
+    except DiffContactError as err:
+        raise SystemExit(f"error: {err}") from None
     args.out.mkdir(parents=True, exist_ok=True)
     text = efficiency_markdown(task, table, epochs)
-    serial = {m: {str(n): c for n, c in sorted(row.items())} for m, row in table.items()}
     write_json(
         args.out / "efficiency.json",
         {
             "task": task,
-            "table": serial,
+            "table": json_table(table),
             "sources": [str(s) for s in args.sources],
             "epochs_by_size": {str(n): e for n, e in sorted(epochs.items())},
             "versions": versions(),

@@ -64,7 +64,7 @@ def run_efficiency(
         "task": task, "models": list(models), "sizes": sizes, "seeds": list(seeds), "epochs": epochs,
         "epochs_by_size": {str(n): by_model for n, by_model in planned.items()},  # (None: the model's default)
     }  # fmt: skip
-    write_json(out / "efficiency.json", {"table": _json_table(table), **record, "versions": versions()})
+    write_json(out / "efficiency.json", {"table": json_table(table), **record, "versions": versions()})
     write_text(out / "efficiency.md", efficiency_markdown(task, table, planned))
     efficiency_figure(task, table, out / "efficiency.png")
     return table
@@ -115,8 +115,9 @@ def collect(
     return table
 
 
-def _json_table(table: dict[str, dict[int, dict | None]]) -> dict:
-    return {model: {str(n): cell for n, cell in row.items()} for model, row in table.items()}
+def json_table(table: dict[str, dict[int, dict | None]]) -> dict:
+    """The table as efficiency.json holds it: {model: {str(N): cell or None}}, N in increasing order."""
+    return {model: {str(n): row[n] for n in sorted(row)} for model, row in table.items()}
 
 
 def efficiency_markdown(
