@@ -23,8 +23,7 @@ import json
 from pathlib import Path
 
 from diffcontact.errors import DiffContactError
-from diffcontact.eval.efficiency import efficiency_figure, efficiency_markdown, json_table
-from diffcontact.files import versions, write_json, write_text
+from diffcontact.eval.efficiency import efficiency_markdown, write_outputs
 
 
 def read(source: Path) -> dict:
@@ -69,20 +68,13 @@ def main() -> None:
     except DiffContactError as err:
         raise SystemExit(f"error: {err}") from None
     args.out.mkdir(parents=True, exist_ok=True)
-    text = efficiency_markdown(task, table, epochs)
-    write_json(
-        args.out / "efficiency.json",
-        {
-            "task": task,
-            "table": json_table(table),
-            "sources": [str(s) for s in args.sources],
-            "epochs_by_size": {str(n): e for n, e in sorted(epochs.items())},
-            "versions": versions(),
-        },
-    )
-    write_text(args.out / "efficiency.md", text)
-    efficiency_figure(task, table, args.out / "efficiency.png")
-    print(text)
+    record = {
+        "task": task,
+        "sources": [str(s) for s in args.sources],
+        "epochs_by_size": {str(n): e for n, e in sorted(epochs.items())},
+    }
+    write_outputs(args.out, task, table, epochs, record)
+    print(efficiency_markdown(task, table, epochs))
 
 
 if __name__ == "__main__":

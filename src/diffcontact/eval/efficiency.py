@@ -64,10 +64,22 @@ def run_efficiency(
         "task": task, "models": list(models), "sizes": sizes, "seeds": list(seeds), "epochs": epochs,
         "epochs_by_size": {str(n): by_model for n, by_model in planned.items()},  # (None: the model's default)
     }  # fmt: skip
-    write_json(out / "efficiency.json", {"table": json_table(table), **record, "versions": versions()})
-    write_text(out / "efficiency.md", efficiency_markdown(task, table, planned))
-    efficiency_figure(task, table, out / "efficiency.png")
+    write_outputs(out, task, table, planned, record)
     return table
+
+
+def write_outputs(
+    out: Path,
+    task: str,
+    table: dict[str, dict[int, dict | None]],
+    epochs: dict[int, dict[str, int | None]],
+    record: dict,
+) -> None:
+    """OUT/efficiency.json (the table, ``record`` and the versions), efficiency.md and efficiency.png; ``epochs``
+    {N: {model: epochs or None}} as listed under the table."""
+    write_json(out / "efficiency.json", {"table": json_table(table), **record, "versions": versions()})
+    write_text(out / "efficiency.md", efficiency_markdown(task, table, epochs))
+    efficiency_figure(task, table, out / "efficiency.png")
 
 
 def cell_epochs(task: str, model: str, n: int, n_default: int = DEFAULT_SIZES["train"]) -> int | None:
